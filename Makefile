@@ -1,0 +1,71 @@
+# mjx_collo — every target sets itself up: a fresh clone needs only `make train ENV=cheetah` or `make test`.
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+ENV     ?= cheetah
+METHOD  ?= collodreamer
+SEEDS   ?= 1
+STEPS   ?=
+RUN     ?=
+ARGS    ?=
+SWEEP   ?=
+CKPT    ?=
+EPISODES ?= 10
+VIDEO   ?= 0
+PYTEST_ARGS ?=
+
+# Quiet noisy deprecation chatter from dependencies.
+export PYTHONWARNINGS ?= ignore::DeprecationWarning
+
+.PHONY: install train sweep eval test test-fast lint format bench bench-envs bench-model bench-planner clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+train: install
+	$(PY) train.py --env $(ENV) --method $(METHOD) --seeds $(SEEDS) \
+	  $(if $(STEPS),--steps $(STEPS)) $(if $(RUN),--run $(RUN)) $(ARGS)
+
+sweep: install
+	$(PY) train.py --env $(ENV) --method $(METHOD) --seeds $(SEEDS) \
+	  $(if $(STEPS),--steps $(STEPS)) $(if $(RUN),--run $(RUN)) \
+	  $(if $(SWEEP),--sweep "$(SWEEP)") $(ARGS)
+
+eval: install
+	$(PY) -m mjx_collo.evaluate --ckpt $(CKPT) --episodes $(EPISODES) $(if $(filter 1,$(VIDEO)),--video) $(ARGS)
+
+test: install
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+test-fast: install
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+lint: install
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+format: install
+	$(PY) -m ruff format .
+	$(PY) -m ruff check --fix .
+
+bench-envs: install
+	$(PY) benchmarks/bench_envs.py $(ARGS)
+
+bench-model: install
+	$(PY) benchmarks/bench_model.py $(ARGS)
+
+bench-planner: install
+	$(PY) benchmarks/bench_planner.py $(ARGS)
+
+bench: install
+	$(PY) benchmarks/bench_train.py $(ARGS)
+
+clean:
+	rm -rf $(VENV) .pytest_cache build *.egg-info

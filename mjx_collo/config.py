@@ -1,0 +1,425 @@
+"""Typed configuration tree: YAML defaults + task/method overlays + dotted CLI overrides.
+
+Validation is done by pydantic (frozen, ``extra="forbid"`` models): unknown keys and wrong types are
+errors that name the key and the valid choices. Models are frozen and hashable, so a config can be
+closed over or passed as a static argument to ``jax.jit``.
+
+Swept float hyperparameters (``SWEEP="value.gamma=0.9,0.99"``) are not static: inside the compiled
+program :func:`with_values` returns a copy of the config whose swept leaves are traced arrays, so
+library code reads ``cfg.value.gamma`` either way and never branches on float values in Python.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+FORMAT_VERSION = 1
+
+
+class ConfigError(ValueError):
+    """A one-line, user-facing configuration problem (unknown key, bad type, missing preset)."""
+
+
+class Section(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Sections
+# --------------------------------------------------------------------------------------------
+
+
+class EnvConfig(Section):
+    task: str
+    action_repeat: int
+    episode_env_steps: int
+    physics: Literal["tuned", "dmc"]
+
+
+class RunConfig(Section):
+    steps: int
+    num_envs: int
+    prefill: int
+    train_every: int
+    train_steps: int
+    pretrain: int
+    eval_every: int
+    eval_episodes: int
+    chunk_env_steps: int
+    checkpoint_every: int
+    keep_checkpoints: int
+    save_replay: bool
+    max_nonfinite: int
+    seed: int
+
+
+class ReplayConfig(Section):
+    capacity: int
+    batch: int
+    length: int
+
+
+class OptimConfig(Section):
+    lr: float
+    eps: float
+    clip: float
+    weight_decay: float
+
+
+class KLConfig(Section):
+    balance: float
+    free: float
+    scale: float
+
+
+class LossScales(Section):
+    obs: float
+    reward: float
+    kl: float
+
+
+class WorldModelConfig(Section):
+    latent: Literal["gaussian", "categorical"]
+    deter: int
+    hidden: int
+    stoch: int
+    classes: int
+    min_std: float
+    unimix: float
+    gru_layernorm: bool
+    act: Literal["elu", "silu", "relu", "tanh"]
+    units: int
+    enc_layers: int
+    dec_layers: int
+    reward_layers: int
+    symlog_obs: bool
+    cnn_depth: int
+    kl: KLConfig
+    loss_scales: LossScales
+    optim: OptimConfig
+
+
+class ValueTargetConfig(Section):
+    kind: Literal["hard", "ema"]
+    every: int
+    tau: float
+
+
+class ValueConfig(Section):
+    enabled: bool
+    layers: int
+    units: int
+    gamma: float
+    lam: float
+    mode: Literal["replay", "plan_final", "plan_inner"]
+    v_every: int
+    target: ValueTargetConfig
+    bootstrap: bool
+    residual_scale: float | Literal["auto"]
+    clip: bool
+    clip_range: tuple[float, float]
+    dropout: float
+    norm: Literal["none", "layer", "batch"]
+    optim: OptimConfig
+
+
+class ShootingConfig(Section):
+    samples: int
+    elites: int
+    iters: int
+    temperature: float
+    min_std: float
+    max_std: float
+    warm_start: bool
+
+
+class PlannerConfig(Section):
+    kind: Literal["latco", "collodreamer", "cem", "mppi", "mppi_value", "dreamer"]
+    solver: Literal["gauss_newton", "cg", "adam"]
+    space: Literal["full", "reduced"]
+    horizon: int
+    mpc_steps: int
+    iters: int
+    init_lam: float
+    init_nu: float
+    dyn_eps: float
+    act_eps: float
+    lm_alpha: float
+    lm_eta: float
+    lam_clip: tuple[float, float]
+    dyn_scale: float
+    act_scale: float
+    init_weight: float
+    gn_damping: float
+    cg_iters: int
+    adam_lr: float
+    gamma: float
+    warm_start: bool
+    init_std: float
+    shooting: ShootingConfig
+
+
+class ActorConfig(Section):
+    layers: int
+    units: int
+    horizon: int
+    init_std: float
+    min_std: float
+    mean_scale: float
+    entropy: float
+    optim: OptimConfig
+
+
+class ExploreConfig(Section):
+    noise: float
+
+
+class JLatentConfig(Section):
+    enabled: bool
+    beta0: float
+    ratio_clip: float
+    log_ratio_clip: float
+    old_every: int
+
+
+class Config(Section):
+    method: Literal["collodreamer", "latco", "dreamer", "cem", "mppi", "mppi_value"]
+    env: EnvConfig
+    run: RunConfig
+    replay: ReplayConfig
+    wm: WorldModelConfig
+    value: ValueConfig
+    planner: PlannerConfig
+    actor: ActorConfig
+    explore: ExploreConfig
+    j_latent: JLatentConfig
+    version: int
+
+
+
+
+# --------------------------------------------------------------------------------------------
+# Loading: defaults.yaml -> task overlay -> method overlay -> presets -> dotted overrides
+# --------------------------------------------------------------------------------------------
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    with open(path) as f:
+        data = yaml.safe_load(f) or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at top level, got {type(data).__name__}")
+    return data
+
+
+def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """Recursively merge ``over`` into a copy of ``base`` (mappings merge, other values replace)."""
+    out = copy.deepcopy(dict(base))
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _valid_keys(model: type[BaseModel], path: Sequence[str]) -> list[str]:
+    """Field names of the section at ``path`` (for 'valid keys are ...' messages)."""
+    cls: Any = model
+    for p in path:
+        field = cls.model_fields.get(p)
+        if field is None or not (isinstance(field.annotation, type) and issubclass(
+            field.annotation, BaseModel
+        )):
+            return []
+        cls = field.annotation
+    return sorted(cls.model_fields)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"a.b=1e-3"`` -> (["a", "b"], 0.001). Values are parsed as YAML scalars/lists."""
+    if "=" not in text:
+        raise ConfigError(f"bad override {text!r}: expected key=value, e.g. wm.deter=300")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key or any(not p for p in key.split(".")):
+        raise ConfigError(f"bad override {text!r}: empty key component")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as e:
+        raise ConfigError(f"bad override {text!r}: value is not valid YAML ({e})") from None
+    return key.split("."), value
+
+
+def _set_path(tree: dict[str, Any], path: Sequence[str], value: Any) -> None:
+    node = tree
+    for p in path[:-1]:
+        nxt = node.get(p)
+        if not isinstance(nxt, dict):
+            nxt = {}
+            node[p] = nxt
+        node = nxt
+    node[path[-1]] = value
+
+
+def _format_error(err: ValidationError) -> str:
+    parts = []
+    for e in err.errors():
+        loc = [str(x) for x in e["loc"]]
+        key = ".".join(loc)
+        if e["type"] == "extra_forbidden":
+            valid = _valid_keys(Config, loc[:-1])
+            hint = f"; valid keys in {'.'.join(loc[:-1]) or 'the top level'}: {', '.join(valid)}"
+            parts.append(f"unknown config key '{key}'{hint}")
+        else:
+            given = e.get("input")
+            parts.append(f"bad value for '{key}' ({given!r}): {e['msg']}")
+    return "; ".join(parts)
+
+
+def available_presets(kind: str) -> list[str]:
+    """Names of the YAML overlays in ``configs/<kind>/``."""
+    return sorted(p.stem for p in (CONFIG_DIR / kind).glob("*.yaml"))
+
+
+def _overlay(kind: str, name: str, required: bool) -> dict[str, Any]:
+    path = CONFIG_DIR / kind / f"{name}.yaml"
+    if not path.exists():
+        if required:
+            raise ConfigError(
+                f"unknown {kind} preset '{name}'; available: {', '.join(available_presets(kind))}"
+            )
+        return {}
+    return _read_yaml(path)
+
+
+def build(tree: Mapping[str, Any]) -> Config:
+    """Validate a plain nested dict into a :class:`Config` (raises :class:`ConfigError`)."""
+    try:
+        return Config.model_validate(dict(tree))
+    except ValidationError as e:
+        raise ConfigError(_format_error(e)) from None
+
+
+def load(
+    task: str | None = None,
+    method: str | None = None,
+    presets: Sequence[str] = (),
+    overrides: Sequence[str] = (),
+) -> Config:
+    """Resolve the layered config.
+
+    Args:
+      task: canonical task name (e.g. ``cheetah_run``); its overlay ``configs/task/<task>.yaml`` is
+        applied if present.
+      method: one of the ``configs/method/*.yaml`` presets.
+      presets: extra overlays from ``configs/preset/`` (e.g. ``debug``), applied in order.
+      overrides: dotted ``key=value`` strings, applied last.
+    """
+    tree = _read_yaml(CONFIG_DIR / "defaults.yaml")
+    if method is not None:
+        tree = deep_merge(tree, _overlay("method", method, required=True))
+        tree["method"] = method
+    if task is not None:
+        tree = deep_merge(tree, _overlay("task", task, required=False))
+        _set_path(tree, ["env", "task"], task)
+    for p in presets:
+        tree = deep_merge(tree, _overlay("preset", p, required=True))
+    for text in overrides:
+        path, value = parse_override(text)
+        _set_path(tree, path, value)
+    return build(tree)
+
+
+def to_dict(cfg: Config) -> dict[str, Any]:
+    return cfg.model_dump(mode="json")
+
+
+def dump_yaml(cfg: Config, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(to_dict(cfg), sort_keys=False))
+
+
+def diff(a: Config, b: Config) -> list[str]:
+    """Human-readable list of ``key: a -> b`` differences between two configs."""
+    fa, fb = _flatten(to_dict(a)), _flatten(to_dict(b))
+    keys = sorted(set(fa) | set(fb))
+    return [f"{k}: {fa.get(k)!r} -> {fb.get(k)!r}" for k in keys if fa.get(k) != fb.get(k)]
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in tree.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Swept float hyperparameters
+# --------------------------------------------------------------------------------------------
+
+
+def float_keys(cfg: Config) -> list[str]:
+    """Dotted paths of every float leaf (the keys a sweep may vary within one compile)."""
+    return sorted(k for k, v in _flatten(to_dict(cfg)).items() if isinstance(v, float))
+
+
+def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:
+    """``"value.gamma=0.9,0.99;wm.optim.lr=3e-4,6e-4"`` -> {key: [values]} (validated)."""
+    out: dict[str, list[float]] = {}
+    valid = float_keys(cfg)
+    for item in filter(None, (s.strip() for s in text.replace(";", " ").split())):
+        if "=" not in item:
+            raise ConfigError(f"bad sweep {item!r}: expected key=v1,v2,...")
+        key, vals = item.split("=", 1)
+        if key not in valid:
+            raise ConfigError(
+                f"cannot sweep '{key}': only float hyperparameters can be swept in one compile; "
+                f"choose from: {', '.join(valid)}"
+            )
+        try:
+            out[key] = [float(v) for v in vals.split(",") if v.strip()]
+        except ValueError:
+            raise ConfigError(f"bad sweep values for '{key}': {vals!r} are not floats") from None
+        if not out[key]:
+            raise ConfigError(f"sweep '{key}' has no values")
+    return out
+
+
+def with_values(cfg: Config, values: Mapping[str, Any]) -> Config:
+    """Copy of ``cfg`` with dotted float leaves replaced (by floats or traced arrays).
+
+    No validation is run, so JAX tracers may be inserted; shapes and other static fields stay.
+    """
+    if not values:
+        return cfg
+    grouped: dict[str, dict[str, Any]] = {}
+    direct: dict[str, Any] = {}
+    for key, v in values.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            grouped.setdefault(head, {})[rest] = v
+        else:
+            direct[head] = v
+    update = dict(direct)
+    for head, sub in grouped.items():
+        child = getattr(cfg, head)
+        if not isinstance(child, BaseModel):
+            raise ConfigError(f"'{head}' is not a config section")
+        update[head] = with_values(child, sub)  # type: ignore[arg-type]
+    return cfg.model_copy(update=update)
+
+
+@functools.cache
+def defaults() -> Config:
+    return load()
