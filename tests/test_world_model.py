@@ -1,0 +1,512 @@
+"""World model: shapes, scan-vs-loop equivalence, KL balancing/free nats by gradients,
+straight-through samples, planning adapter, optimizer path, non-finite skip, J_latent.
+
+XLA's CPU compile time dominates here, so computations are jitted once and shared (``_model``).
+"""
+
+import functools
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mjx_collo import config, nets
+from mjx_collo import world_model as wm
+
+LATENTS = ["gaussian", "categorical"]
+OBS, ACT, B, T = 5, 2, 3, 6
+
+
+def _cfg(latent: str, *overrides: str) -> config.WorldModelConfig:
+    return config.load(presets=["debug"], overrides=[f"wm.latent={latent}", *overrides]).wm
+
+
+def _batch(key, b=B, t=T, obs=OBS):
+    k1, k2, k3 = jax.random.split(key, 3)
+    is_first = jnp.zeros((b, t), bool).at[:, 0].set(True).at[1, 3].set(True)
+    return {
+        "obs": 3.0 * jax.random.normal(k1, (b, t, obs)),
+        "action": jax.random.uniform(k2, (b, t, ACT), minval=-1, maxval=1),
+        "reward": jax.random.uniform(k3, (b, t)),
+        "is_first": is_first,
+    }
+
+
+def _setup(latent, *overrides):
+    cfg = _cfg(latent, *overrides)
+    params = wm.init(cfg, jax.random.key(0), (OBS,), ACT)
+    return cfg, params
+
+
+@functools.cache
+def _model(latent):
+    """Shared per-latent fixtures: cfg, params, a batch, jitted observe, its key and output."""
+    cfg, params = _setup(latent)
+    batch = _batch(jax.random.key(1))
+    observe = jax.jit(functools.partial(wm.observe, cfg))
+    key = jax.random.key(2)
+    post, prior = observe(params, batch["obs"], batch["action"], batch["is_first"], key)
+    return cfg, params, batch, observe, key, post, prior
+
+
+def _close(a, b, atol=1e-5):
+    jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, atol=atol, rtol=1e-5), a, b)
+
+
+def _norm(tree):
+    return jnp.sqrt(sum(jnp.sum(jnp.square(x)) for x in jax.tree.leaves(tree)))
+
+
+# ------------------------------------------------------------------------------------------
+# Shapes, dtypes, init
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_shapes_and_dtypes(latent):
+    cfg, params, batch, _, _, post, prior = _model(latent)
+    s = wm.stoch_size(cfg)
+    assert s == (cfg.stoch * cfg.classes if latent == "categorical" else cfg.stoch)
+    assert wm.feat_size(cfg) == s + cfg.deter
+    assert post.deter.shape == (B, T, cfg.deter) and post.stoch.shape == (B, T, s)
+    assert prior.deter.shape == (B, T, cfg.deter) and prior.stoch.shape == (B, T, s)
+    stat_shapes = {k: v.shape for k, v in post.stats.items()}
+    if latent == "gaussian":
+        assert stat_shapes == {"mean": (B, T, s), "std": (B, T, s)}
+        assert float(post.stats["std"].min()) >= cfg.min_std
+    else:
+        assert stat_shapes == {"logits": (B, T, cfg.stoch, cfg.classes)}
+    assert wm.get_feat(post).shape == (B, T, wm.feat_size(cfg))
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves((post, prior)))
+    # Loss terms, metrics and posterior outputs are checked in the train-step tests below.
+
+
+def test_conv_encoder_decoder_shapes():
+    cfg = _cfg("categorical", "wm.cnn_depth=4")
+    params = wm.init(cfg, jax.random.key(0), (64, 64, 3), ACT)
+    assert "enc_conv" in params and "dec_conv" in params and "enc_mlp" not in params
+    obs = jax.random.randint(jax.random.key(1), (2, 3, 64, 64, 3), 0, 256).astype(jnp.uint8)
+    feat = jnp.zeros((2, 3, wm.feat_size(cfg)))
+
+    @jax.jit
+    def run(params, obs, feat):
+        x = wm.preprocess_obs(cfg, params, obs)
+        return x, wm.encode(cfg, params, obs), wm.decode(cfg, params, feat)
+
+    x, embed, recon = run(params, obs, feat)
+    assert x.dtype == jnp.float32 and -0.5 <= float(x.min()) and float(x.max()) <= 0.5 + 1e-6
+    assert embed.shape == (2, 3, 32 * 4) and np.isfinite(embed).all()
+    assert recon.shape == (2, 3, 64, 64, 3) and recon.dtype == jnp.float32
+    assert params["obs_e"]["Dense_0"]["kernel"].shape == (32 * 4, cfg.hidden)
+
+
+def test_gru_cell_layernorm_and_plain():
+    x, h = jnp.ones((4, 3)), jnp.zeros((4, 8))
+    for norm in (True, False):
+        cell = nets.GRUCell(8, layernorm=norm)
+        p = nets.init_params(cell, jax.random.key(0), x, h)
+        assert ("LayerNorm_0" in p) == norm
+        out = jax.jit(lambda p, x, h, cell=cell: cell.apply({"params": p}, x, h))(p, x, h)
+        assert out.shape == (4, 8) and np.all(np.abs(out) < 1) and np.abs(out).max() > 0
+
+
+def test_init_params_matches_flax_default_scales():
+    mlp = nets.MLP(2, 256, out=3, norm="layer")
+    p = nets.init_params(mlp, jax.random.key(0), jax.ShapeDtypeStruct((1, 400), jnp.float32))
+    ref = jax.eval_shape(mlp.init, jax.random.key(0), jnp.zeros((1, 400)))["params"]
+    assert jax.tree.structure(p) == jax.tree.structure(ref)
+    for path, x in jax.tree_util.tree_leaves_with_path(p):
+        name = str(path[-1].key)
+        if name == "kernel":  # LeCun normal: std 1 / sqrt(fan_in), truncated at 2 std
+            fan_in = x.shape[0]
+            np.testing.assert_allclose(np.std(x) * np.sqrt(fan_in), 1.0, rtol=0.05)
+            assert np.abs(x).max() * np.sqrt(fan_in) <= 2.0 / 0.8796 + 1e-4
+        else:
+            np.testing.assert_array_equal(x, 1.0 if name == "scale" else 0.0)
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_two_seeds_give_different_parameters(latent):
+    cfg = _cfg(latent)
+    p0 = wm.init(cfg, jax.random.key(0), (OBS,), ACT)
+    p1 = wm.init(cfg, jax.random.key(1), (OBS,), ACT)
+    same = wm.init(cfg, jax.random.key(0), (OBS,), ACT)
+    assert jax.tree.structure(p0) == jax.tree.structure(p1)
+    kernels0 = [x for x in jax.tree.leaves(p0) if x.ndim == 2]
+    kernels1 = [x for x in jax.tree.leaves(p1) if x.ndim == 2]
+    assert all(not np.allclose(a, b) for a, b in zip(kernels0, kernels1, strict=True))
+    # Layers differ from each other too (no key reuse across modules).
+    assert not np.allclose(p0["obs_h"]["Dense_0"]["kernel"], p0["img_out"]["Dense_0"]["kernel"])
+    _close(p0, same, atol=0)
+
+
+# ------------------------------------------------------------------------------------------
+# Scan vs Python loop, resets
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_observe_scan_equals_python_loop(latent):
+    cfg, params, batch, _, key, post, prior = _model(latent)
+    obs_step = jax.jit(functools.partial(wm.obs_step, cfg))
+    state = wm.initial_state(cfg, (B,))
+    # Garbage in the initial state must be wiped by is_first at t = 0.
+    state = state.replace(deter=state.deter + 5.0, stoch=state.stoch + 5.0)
+    keys = jax.random.split(key, T)
+    for t in range(T):
+        a, o, f = batch["action"][:, t], batch["obs"][:, t], batch["is_first"][:, t]
+        state, prior_t = obs_step(params, state, a, o, f, keys[t])
+        _close(state, jax.tree.map(lambda x, t=t: x[:, t], post))
+        _close(prior_t, jax.tree.map(lambda x, t=t: x[:, t], prior))
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_observe_resets_state_and_action_at_is_first(latent):
+    cfg, params, batch, observe, key, post, _ = _model(latent)
+    # Row 1 resets at t = 3: changing its history before t = 3 and the action stored at t = 3
+    # leaves everything from t = 3 on unchanged (same noise), while row 0 is affected.
+    obs = batch["obs"].at[:, 1:3].add(1.0)
+    action = batch["action"].at[:, 1:4].set(0.7)
+    post2, _ = observe(params, obs, action, batch["is_first"], key)
+    _close(jax.tree.map(lambda x: x[1, 3:], post2), jax.tree.map(lambda x: x[1, 3:], post))
+    assert not np.allclose(post2.deter[0, 3:], post.deter[0, 3:], atol=1e-4)
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_imagine_scan_equals_python_loop(latent):
+    cfg, params, batch, _, _, post, _ = _model(latent)
+    start = jax.tree.map(lambda x: x[:, -1], post)
+    actions = jax.random.uniform(jax.random.key(3), (B, 5, ACT), minval=-1, maxval=1)
+    key = jax.random.key(4)
+    policy = lambda f, k: jnp.tanh(f[..., :ACT] + jax.random.normal(k, f.shape[:-1] + (ACT,)))
+
+    @jax.jit
+    def rollouts(params, start, actions, key):
+        open_loop = wm.imagine(cfg, params, start, actions, key)
+        closed_loop = wm.imagine_policy(cfg, params, start, policy, 4, key)
+        return open_loop, closed_loop
+
+    states, (s2, a2) = rollouts(params, start, actions, key)
+    img_step = jax.jit(functools.partial(wm.img_step, cfg))
+    state = start
+    for k, kk in enumerate(jax.random.split(key, 5)):
+        state = img_step(params, state, actions[:, k], kk)
+        _close(state, jax.tree.map(lambda x, k=k: x[:, k], states))
+    # Closed loop: a policy of the (stop-gradient) feature, key per step split as documented.
+    assert s2.deter.shape == (B, 4, cfg.deter) and a2.shape == (B, 4, ACT)
+    policy_jit = jax.jit(policy)
+    state = start
+    for k, kk in enumerate(jax.random.split(key, 4)):
+        kp, ks = jax.random.split(kk)
+        a = policy_jit(wm.get_feat(state), kp)
+        _close(a, a2[:, k])
+        state = img_step(params, state, a, ks)
+        _close(state, jax.tree.map(lambda x, k=k: x[:, k], s2))
+
+
+# ------------------------------------------------------------------------------------------
+# KL balancing, free nats, straight-through
+# ------------------------------------------------------------------------------------------
+
+
+def _random_stats(cfg, key, shape):
+    k1, k2 = jax.random.split(key)
+    if cfg.latent == "gaussian":
+        return {
+            "mean": jax.random.normal(k1, shape + (cfg.stoch,)),
+            "std": 0.2 + jax.random.uniform(k2, shape + (cfg.stoch,)),
+        }
+    return wm._stats(cfg, jax.random.normal(k1, shape + (cfg.stoch * cfg.classes,)))
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_kl_balancing_splits_the_gradient_80_20(latent):
+    cfg = _cfg(latent, "wm.kl.balance=0.8", "wm.kl.free=0.0")
+    post = _random_stats(cfg, jax.random.key(0), (B, T))
+    prior = _random_stats(cfg, jax.random.key(1), (B, T))
+    plain = lambda q, p: jnp.mean(wm.kl_div(cfg, q, p))
+    balanced = lambda q, p: wm.kl_loss(cfg, q, p)[0]
+
+    @jax.jit
+    def grads(post, prior):
+        g = jax.value_and_grad(balanced, argnums=(0, 1))(post, prior)
+        r = jax.value_and_grad(plain, argnums=(0, 1))(post, prior)
+        return g, r
+
+    (v, (g_post, g_prior)), (rv, (r_post, r_prior)) = grads(post, prior)
+    assert np.isclose(v, rv, rtol=1e-6)
+    _close(g_prior, jax.tree.map(lambda g: 0.8 * g, r_prior), atol=1e-7)
+    _close(g_post, jax.tree.map(lambda g: 0.2 * g, r_post), atol=1e-7)
+    assert float(_norm(g_prior)) > 1e-3 and float(_norm(g_post)) > 1e-4
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_free_nats_floor_applies_to_the_batch_mean(latent):
+    cfg0 = _cfg(latent, "wm.kl.free=0.0")
+    post = _random_stats(cfg0, jax.random.key(0), (B, T))
+    prior = _random_stats(cfg0, jax.random.key(1), (B, T))
+    per_elem = wm.kl_div(cfg0, post, prior)
+    mean, lo, hi = float(jnp.mean(per_elem)), float(per_elem.min()), float(per_elem.max())
+    assert lo < mean < hi
+
+    @jax.jit
+    def loss_and_grad(free, post, prior):
+        cfg = config.with_values(cfg0, {"kl.free": free})
+        return jax.value_and_grad(lambda q, p: wm.kl_loss(cfg, q, p)[0], (0, 1))(post, prior)
+
+    # Floor above the batch mean (though below some elements): loss = free, no gradient at all.
+    v, g = loss_and_grad((mean + hi) / 2, post, prior)
+    assert np.isclose(v, (mean + hi) / 2) and float(_norm(g)) == 0.0
+    # Floor below the mean (though above some elements): loss = mean KL, all elements get gradient.
+    v, (_, g_prior) = loss_and_grad((mean + lo) / 2, post, prior)
+    assert np.isclose(v, mean, rtol=1e-6)
+    leaf = g_prior["mean"] if latent == "gaussian" else g_prior["logits"]
+    assert np.all(np.abs(leaf).reshape(B, T, -1).sum(-1) > 0)
+
+
+def test_straight_through_samples_are_one_hot_with_gradient():
+    cfg = _cfg("categorical")
+    raw = jax.random.normal(jax.random.key(0), (64, cfg.stoch * cfg.classes))
+    w = jax.random.normal(jax.random.key(2), (cfg.stoch * cfg.classes,))
+
+    @jax.jit
+    def run(raw, key):
+        noise = wm._noise(cfg, key, (64,))
+        sample_fn = lambda r: wm._sample(cfg, wm._stats(cfg, r), noise)
+        probs_fn = lambda r: wm.dist_mean(cfg, wm._stats(cfg, r))
+        g = jax.grad(lambda r: jnp.sum(sample_fn(r) @ w))(raw)
+        g_probs = jax.grad(lambda r: jnp.sum(probs_fn(r) @ w))(raw)
+        one = jnp.broadcast_to(raw[:1], (4000, raw.shape[1]))
+        many = wm._sample(cfg, wm._stats(cfg, one), wm._noise(cfg, key, (4000,)))
+        return sample_fn(raw), g, g_probs, many.mean(0), probs_fn(raw[:1])[0]
+
+    sample, g, g_probs, freq, probs = run(raw, jax.random.key(1))
+    groups = np.asarray(sample).reshape(64, cfg.stoch, cfg.classes)
+    assert np.all(np.isclose(groups, 0.0, atol=1e-6) | np.isclose(groups, 1.0, atol=1e-6))
+    np.testing.assert_allclose(groups.sum(-1), 1.0, atol=1e-6)
+    # Straight-through: d sample / d logits = d probs / d logits (non-zero).
+    assert float(jnp.abs(g).max()) > 1e-3
+    _close(g, g_probs, atol=1e-6)
+    # Samples follow the probabilities (Gumbel-max): empirical frequencies match.
+    _close(freq, probs, atol=0.04)
+
+
+def test_unimix_floors_probabilities():
+    cfg = _cfg("categorical", "wm.unimix=0.01")
+    plain_cfg = _cfg("categorical")
+    raw = 30.0 * jax.random.normal(jax.random.key(0), (8, cfg.stoch * cfg.classes))
+    probs, plain = jax.jit(
+        lambda r: (
+            wm.dist_mean(cfg, wm._stats(cfg, r)),
+            wm.dist_mean(plain_cfg, wm._stats(plain_cfg, r)),
+        )
+    )(raw)
+    assert float(probs.min()) >= 0.01 / cfg.classes - 1e-7
+    np.testing.assert_allclose(probs.reshape(8, cfg.stoch, -1).sum(-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(probs, 0.99 * plain + 0.01 / cfg.classes, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------
+# Planning adapter
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_planning_fns_shapes_and_agreement_with_img_step_means(latent):
+    cfg, params, _, _, _, post, _ = _model(latent)
+    acts = jax.random.uniform(jax.random.key(3), (4, ACT), minval=-1, maxval=1)
+    full, red = wm.planning_fns(cfg, "full"), wm.planning_fns(cfg, "reduced")
+    s = wm.stoch_size(cfg)
+    assert full.size == s + cfg.deter and red.size == cfg.deter
+
+    @jax.jit
+    def run(params, post):
+        ctx = jax.tree.map(lambda x: x[0, -1], post)  # one env's filtered state (unbatched)
+        # Reference: deterministic RSSM rollout from ctx (stoch := prior mean after step 1).
+        ref = [wm.img_step_mean(cfg, params, ctx, acts[0])]
+        for a in acts[1:]:
+            ref.append(wm.img_step_mean(cfg, params, ref[-1], a))
+        zf, zr = [full.start(params, ctx, acts[0])], [red.start(params, ctx, acts[0])]
+        for a in acts[1:]:
+            zf.append(full.step(params, zf[-1], a))
+            zr.append(red.step(params, zr[-1], a))
+        return {
+            "ref_feat": jnp.stack([wm.get_feat(x) for x in ref]),
+            "ref_deter": jnp.stack([x.deter for x in ref]),
+            "ref_reward": jnp.stack([wm.reward(cfg, params, wm.get_feat(x)) for x in ref]),
+            "zf": jnp.stack(zf),
+            "zr": jnp.stack(zr),
+            "feat_f": jnp.stack([full.feat(params, z) for z in zf]),
+            "feat_r": jnp.stack([red.feat(params, z) for z in zr]),
+            "rew_f": jnp.stack([full.reward(params, z) for z in zf]),
+            "rew_r": jnp.stack([red.reward(params, z) for z in zr]),
+            "ctx_feat": full.ctx_feat(params, ctx),
+            "post_feat": wm.get_feat(ctx),
+            # Vmappable over plans, differentiable (the planner takes Jacobians).
+            "vmapped": jax.vmap(full.step, (None, 0, None))(params, jnp.stack(zf), acts[0]),
+            "jac": jax.jacfwd(red.step, argnums=(1, 2))(params, zr[-1], acts[0]),
+        }
+
+    o = run(params, post)
+    assert o["zf"].shape == (4, full.size) and o["zr"].shape == (4, red.size)
+    _close(o["zf"], o["ref_feat"])
+    _close(o["zr"], o["ref_deter"])
+    _close(o["feat_f"], o["feat_r"])
+    _close(o["rew_f"], o["ref_reward"])
+    _close(o["rew_r"], o["rew_f"])
+    assert o["rew_f"].shape == (4,)
+    _close(o["ctx_feat"], o["post_feat"])
+    assert o["vmapped"].shape == (4, full.size)
+    assert o["jac"][0].shape == (red.size, red.size) and o["jac"][1].shape == (red.size, ACT)
+    assert float(jnp.abs(o["jac"][1]).max()) > 0
+    if latent == "categorical":
+        sums = o["zf"][:, :s].reshape(4, cfg.stoch, -1).sum(-1)
+        np.testing.assert_allclose(sums, 1.0, atol=1e-5)
+    with pytest.raises(ValueError, match="reduced"):
+        wm.planning_fns(cfg, "bogus")
+
+
+def test_imagine_fns_protocol():
+    cfg, params, _, _, _, post, _ = _model("categorical")
+    fns = wm.imagine_fns(cfg)
+
+    @jax.jit
+    def run(params, post):
+        state = jax.tree.map(lambda x: x[:, -1], post)
+        nxt = fns.img_step(params, state, jnp.zeros((B, ACT)), jax.random.key(0))
+        zero = fns.initial((B,))
+        return fns.get_feat(nxt), fns.reward(params, fns.get_feat(nxt)), zero, nxt
+
+    feat, rew, zero, nxt = run(params, post)
+    assert feat.shape == (B, wm.feat_size(cfg)) and rew.shape == (B,)
+    assert jax.tree.structure(zero) == jax.tree.structure(nxt)
+    assert float(jnp.abs(zero.deter).max()) == 0.0
+
+
+# ------------------------------------------------------------------------------------------
+# Optimisation
+# ------------------------------------------------------------------------------------------
+
+
+def test_train_step_reduces_loss_and_skips_nonfinite():
+    cfg, params = _setup("categorical", "wm.optim.lr=3e-3")
+    opt = wm.init_opt_state(cfg, params)
+    batch = _batch(jax.random.key(1))
+    step = jax.jit(functools.partial(wm.train_step, cfg))
+    history = []
+    for i in range(30):
+        params, opt, metrics, out = step(params, opt, batch, jax.random.key(i))
+        history.append(metrics)
+        assert metrics["nonfinite"] == 0.0
+    keys = ("ent/prior", "ent/post", "kl", "kl/prior_term", "kl/post_term", "grad_norm")
+    for k in keys + ("err/obs_mse", "err/reward_mse", "loss/obs", "loss/reward", "loss/kl"):
+        assert metrics[k].shape == () and np.isfinite(metrics[k]), k
+    total = sum(wm.loss_scales(cfg)[k] * metrics[f"loss/{k}"] for k in ("obs", "reward", "kl"))
+    np.testing.assert_allclose(metrics["loss/total"], total, rtol=1e-5)
+    assert history[-1]["loss/obs"] < 0.75 * history[0]["loss/obs"]
+    assert history[-1]["loss/reward"] < 0.5 * history[0]["loss/reward"]
+    assert out.feat.shape == (B, T, wm.feat_size(cfg)) and out.reward.shape == (B, T)
+    assert out.state.deter.shape == (B, T, cfg.deter)
+    bad = dict(batch, obs=batch["obs"].at[0, 2, 1].set(jnp.nan))
+    p2, o2, m2, _ = step(params, opt, bad, jax.random.key(0))
+    assert m2["nonfinite"] == 1.0
+    _close((p2, o2), (params, opt), atol=0)
+
+
+def test_swept_hyperparameters_are_traced_through_train_step():
+    """Float config leaves as tracers (a vmapped sweep): one compile, per-member behaviour."""
+    cfg, params = _setup("gaussian")
+    batch = _batch(jax.random.key(1))
+    opt = wm.init_opt_state(cfg, params)
+
+    def run(lr, free):
+        c = config.with_values(cfg, {"optim.lr": lr, "kl.free": free})
+
+        def body(carry, key):
+            p, o = carry
+            p, o, m, _ = wm.train_step(c, p, o, batch, key)
+            return (p, o), m
+
+        (p, _), m = jax.lax.scan(body, (params, opt), jax.random.split(jax.random.key(0), 20))
+        return p, m
+
+    lrs, frees = jnp.array([1e-5, 3e-3]), jnp.array([0.0, 1e3])
+    p, m = jax.jit(jax.vmap(run))(lrs, frees)
+    d0 = max(jax.tree.leaves(jax.tree.map(lambda n, o: jnp.abs(n[0] - o).max(), p, params)))
+    d1 = max(jax.tree.leaves(jax.tree.map(lambda n, o: jnp.abs(n[1] - o).max(), p, params)))
+    assert d1 > 10 * d0 > 0
+    obs_loss = m["loss/obs"]  # [member, step]
+    assert obs_loss[1, -1] < 0.5 * obs_loss[1, 0]  # the large learning rate fits
+    assert obs_loss[0, -1] > 0.95 * obs_loss[0, 0]  # the tiny one barely moves
+    np.testing.assert_allclose(m["loss/kl"][1], 1e3, rtol=1e-6)  # free nats floor is traced
+
+
+def test_decoupled_weight_decay():
+    cfg, params = _setup("gaussian")
+    flat = jax.flatten_util.ravel_pytree(params)[0]
+
+    @jax.jit
+    def decayed(flat, wd):
+        tx = wm.make_optimizer(config.with_values(cfg, {"optim.weight_decay": wd}).optim)
+        upd, _ = tx.update(jnp.zeros_like(flat), tx.init(flat), flat)
+        return flat + upd
+
+    # D2: with zero gradients only `p <- (1 - wd) p` remains (not scaled by the learning rate).
+    _close(decayed(flat, 0.1), 0.9 * flat)
+    _close(decayed(flat, 0.0), flat, atol=0)
+
+
+# ------------------------------------------------------------------------------------------
+# J_latent
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("latent", LATENTS)
+def test_j_latent_surrogate(latent):
+    cfg, params, batch, _, _, post, _ = _model(latent)
+    jl_cfg = config.load(presets=["debug"]).j_latent
+    value_fn = lambda f: jnp.tanh(f).sum(-1)
+    args = (post, batch["action"], batch["reward"], batch["is_first"])
+
+    @jax.jit
+    def run(params, old):
+        jl = wm.JLatentArgs(old, value_fn, jnp.asarray(0.5), 0.9, jl_cfg)
+        (obj, metrics), grads = jax.value_and_grad(
+            lambda p: wm.j_latent(cfg, p, jl, *args), has_aux=True
+        )(params)
+        return obj, metrics, grads
+
+    obj, metrics, grads = run(params, params)
+    # With phi_old = phi every ratio is 1, so J is the mean advantage over valid windows.
+    v = value_fn(wm.get_feat(post))
+    adv = batch["reward"][:, 2:] + 0.9 * v[:, 2:] - v[:, 1:-1]
+    f = batch["is_first"]
+    valid = ~(f[:, 2:] | f[:, 1:-1] | f[:, :-2])
+    np.testing.assert_allclose(obj, adv[valid].mean(), rtol=1e-5)
+    assert float(metrics["j_latent_log_ratio"]) < 1e-5
+    # Gradient reaches the transition and prior (phi), not the decoder or reward head.
+    assert float(_norm(grads["gru"])) > 0 and float(_norm(grads["img_out"])) > 0
+    assert float(_norm(grads["dec_mlp"])) == 0 and float(_norm(grads["reward"])) == 0
+    # A changed model gives ratios != 1, clipped to [1 - eps, 1 + eps] in the surrogate.
+    obj2, metrics2, _ = run(params, jax.tree.map(lambda x: x * 0.9, params))
+    assert float(metrics2["j_latent_log_ratio"]) > 1e-3
+    assert abs(float(obj2)) <= 1.2 * float(jnp.abs(adv[valid]).mean()) + 1e-6
+
+
+def test_j_latent_enters_the_loss_only_when_given():
+    cfg, params, batch, _, _, _, _ = _model("gaussian")
+    jl_cfg = config.load(presets=["debug"]).j_latent
+
+    @jax.jit
+    def run(params, batch):
+        jl = wm.JLatentArgs(params, lambda f: jnp.tanh(f).sum(-1), jnp.asarray(0.5), 0.9, jl_cfg)
+        with_jl = wm.loss(cfg, params, batch, jax.random.key(2), jl)
+        base = wm.loss(cfg, params, batch, jax.random.key(2))
+        return with_jl[:3], base[:2]
+
+    (total, losses, metrics), (base, base_losses) = run(params, batch)
+    assert "j_latent" in losses and "j_latent" not in base_losses
+    np.testing.assert_allclose(total, base + 0.5 * losses["j_latent"], rtol=1e-5)
+    np.testing.assert_allclose(losses["j_latent"], -metrics["j_latent"], rtol=1e-5)
