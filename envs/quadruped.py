@@ -1,0 +1,156 @@
+"""quadruped-walk / quadruped-run (dm_control ``suite/quadruped.py``, ``Move`` task) on MJX."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from envs import base
+from envs.rewards import tolerance
+
+WALK_SPEED = 0.5
+RUN_SPEED = 5.0
+DEFAULT_TIME_LIMIT = 20.0
+CONTROL_DT = 0.02
+HEIGHT_STEP = 0.01  # dm_control raises the body in 1 cm steps until nothing touches
+
+# Tuned MJX options (evidence: envs/assets/README.md): floor-vs-body contacts only (dm_control
+# also lets legs touch each other and the torso; the random-policy return is unchanged), the
+# deepest max_contact_points contacts, fewer solver iterations.
+TUNED = dict(iterations=2, ls_iterations=4, eulerdamp=True, max_contact_points=8)
+
+_GEOM = mujoco.mjtGeom
+
+
+def build_model(physics: str, floor_size: float) -> mujoco.MjModel:
+    spec = base.load_spec("quadruped")
+    floor = next(g for g in spec.geoms if g.name == "floor")
+    floor.size = [floor_size, floor_size, 0.5]
+    if physics == "tuned":
+        base.set_floor_only_contacts(spec, floor="floor")
+        base.add_numeric(spec, "max_contact_points", TUNED["max_contact_points"])
+    m = spec.compile()
+    if physics == "tuned":
+        base.tune_solver(m, TUNED["iterations"], TUNED["ls_iterations"], TUNED["eulerdamp"])
+    return m
+
+
+def _lowest_point(gtype: int, size: np.ndarray, pos: jax.Array, mat: jax.Array) -> jax.Array:
+    """Lowest world z of a geom (static type/size; traced pose ``pos [3]``, ``mat [3, 3]``)."""
+    if gtype == _GEOM.mjGEOM_SPHERE:
+        return pos[2] - size[0]
+    if gtype == _GEOM.mjGEOM_CAPSULE:
+        return pos[2] - jnp.abs(mat[2, 2]) * size[1] - size[0]
+    if gtype == _GEOM.mjGEOM_ELLIPSOID:
+        return pos[2] - jnp.sqrt(jnp.sum((mat[2, :] * size[:3]) ** 2))
+    if gtype == _GEOM.mjGEOM_CYLINDER:
+        az = mat[2, 2]
+        return pos[2] - jnp.abs(az) * size[1] - size[0] * jnp.sqrt(jnp.maximum(1 - az**2, 0.0))
+    raise ValueError(f"no lowest-point rule for geom type {gtype}")
+
+
+class QuadrupedMove(base.MjxTask):
+    acc_observations = True  # imu accelerometer and toe force/torque sensors
+
+    def __init__(self, desired_speed: float, name: str, physics: str = "tuned"):
+        floor_size = DEFAULT_TIME_LIMIT * desired_speed  # dm_control: floor_size=_TIME_LIMIT*speed
+        # The reset-height search (like dm_control's) tests every geom that touches the floor in
+        # dm_control's model, including geoms the tuned model makes non-colliding.
+        self._reset_model = build_model("dmc", floor_size)
+        m = build_model(physics, floor_size)
+        super().__init__(m, CONTROL_DT, physics)
+        self.name = name
+        self.desired_speed = desired_speed
+        hinges = np.flatnonzero(m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE)
+        self._hinge_q = jnp.asarray(m.jnt_qposadr[hinges])
+        self._hinge_v = jnp.asarray(m.jnt_dofadr[hinges])
+        self._torso = base.obj_id(m, "body", "torso")
+        self._velocimeter = base.sensor(m, "velocimeter")
+        # dm_control orders imu and force/torque sensors by sensor id (np.isin over sensor_type).
+        ids = np.arange(m.nsensor)
+        imu_types = (mujoco.mjtSensor.mjSENS_GYRO, mujoco.mjtSensor.mjSENS_ACCELEROMETER)
+        ft_types = (mujoco.mjtSensor.mjSENS_FORCE, mujoco.mjtSensor.mjSENS_TORQUE)
+        self._imu = self._sensor_indices(m, ids[np.isin(m.sensor_type, imu_types)])
+        self._force_torque = self._sensor_indices(m, ids[np.isin(m.sensor_type, ft_types)])
+        rm = self._reset_model
+        floor_id = base.obj_id(rm, "geom", "floor")
+        self._height_geoms = [
+            (int(g), int(rm.geom_type[g]), rm.geom_size[g].copy())
+            for g in range(rm.ngeom)
+            if g != floor_id
+            and (
+                rm.geom_contype[g] & rm.geom_conaffinity[floor_id]
+                or rm.geom_conaffinity[g] & rm.geom_contype[floor_id]
+            )
+        ]
+        self._mjx_reset_model = mjx.put_model(rm, impl="jax")
+
+    @staticmethod
+    def _sensor_indices(m: mujoco.MjModel, sensor_ids: np.ndarray) -> jax.Array:
+        idx = [np.arange(m.sensor_adr[i], m.sensor_adr[i] + m.sensor_dim[i]) for i in sensor_ids]
+        return jnp.asarray(np.concatenate(idx))
+
+    def _initial(self, key):
+        m = self.mj_model
+        quat = jax.random.normal(key, (4,))
+        quat = quat / jnp.linalg.norm(quat)
+        qpos = jnp.zeros(m.nq).at[3:7].set(quat)
+        z = self._non_contacting_height(qpos)
+        qpos = qpos.at[2].set(z)
+        return self._data_at(qpos, jnp.zeros(m.nv), jnp.zeros(m.na)), {}
+
+    def _non_contacting_height(self, qpos: jax.Array) -> jax.Array:
+        """dm_control's ``_find_non_contacting_height`` in closed form: the first height on the
+        1 cm grid (from 0) at which no geom reaches below the floor plane (z = 0)."""
+        rm = self._mjx_reset_model
+        d = mjx.make_data(rm).replace(qpos=qpos)
+        d = mjx.kinematics(rm, d)
+        lowest = jnp.stack(
+            [
+                _lowest_point(t, size, d.geom_xpos[g], d.geom_xmat[g])
+                for g, t, size in self._height_geoms
+            ]
+        ).min()
+        steps = jnp.maximum(jnp.ceil(-lowest / HEIGHT_STEP), 0.0)
+        return steps * HEIGHT_STEP
+
+    def _observe(self, data, info):
+        ego = jnp.concatenate([data.qpos[self._hinge_q], data.qvel[self._hinge_v], data.act])
+        return jnp.concatenate(
+            [
+                ego,
+                data.sensordata[self._velocimeter],
+                data.xmat[self._torso, 2, 2][None],
+                data.sensordata[self._imu],
+                jnp.arcsinh(data.sensordata[self._force_torque]),
+            ]
+        ).astype(jnp.float32)
+
+    def _reward(self, data, info):
+        upright = tolerance(
+            data.xmat[self._torso, 2, 2],
+            (1.0, np.inf),
+            margin=2.0,
+            value_at_margin=0.0,
+            sigmoid="linear",
+        )
+        s = self.desired_speed
+        move = tolerance(
+            data.sensordata[self._velocimeter][0],
+            (s, np.inf),
+            margin=s,
+            value_at_margin=0.5,
+            sigmoid="linear",
+        )
+        return upright * move
+
+
+def quadruped_walk(physics: str = "tuned") -> QuadrupedMove:
+    return QuadrupedMove(WALK_SPEED, "quadruped_walk", physics)
+
+
+def quadruped_run(physics: str = "tuned") -> QuadrupedMove:
+    return QuadrupedMove(RUN_SPEED, "quadruped_run", physics)

@@ -1,0 +1,170 @@
+"""Registry, reward helper and wrappers of the MJX task suite (fast; reacher keeps compiles short)."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs
+from envs.rewards import tolerance
+
+
+def test_registry_lists_the_paper_tasks_and_aliases():
+    assert envs.registered() == [
+        "cheetah_run",
+        "quadruped_run",
+        "quadruped_walk",
+        "reacher_easy",
+        "reacher_hard",
+        "walker_walk",
+    ]
+    assert envs.canonical("cheetah") == "cheetah_run"
+    assert envs.canonical("reacher") == "reacher_easy"
+    assert envs.canonical("quadruped") == "quadruped_walk"
+    assert envs.canonical("walker") == "walker_walk"
+    assert envs.canonical("Reacher-Hard") == "reacher_hard"
+
+
+def test_unknown_task_error_lists_valid_names():
+    with pytest.raises(envs.UnknownTaskError) as e:
+        envs.make("cheeta")
+    msg = str(e.value)
+    assert "cheeta" in msg and "cheetah_run" in msg and "walker_walk" in msg
+
+
+def test_unknown_override_error_lists_valid_overrides():
+    with pytest.raises(TypeError) as e:
+        envs.make("reacher", action_repeats=2)
+    msg = str(e.value)
+    assert "action_repeats" in msg and "action_repeat" in msg and "num_envs" in msg
+
+
+def test_bad_physics_option_is_rejected():
+    with pytest.raises(ValueError, match="tuned"):
+        envs.make("reacher", physics="fast")
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(bounds=(10, float("inf")), margin=10, value_at_margin=0, sigmoid="linear"),
+        dict(bounds=(1.2, float("inf")), margin=0.6),
+        dict(bounds=(0, 0.06)),
+        dict(bounds=(0.5, float("inf")), margin=0.5, value_at_margin=0.5, sigmoid="linear"),
+        dict(bounds=(-1, 1), margin=2, value_at_margin=0.1, sigmoid="cosine"),
+        dict(bounds=(0, 1), margin=1, value_at_margin=0.2, sigmoid="long_tail"),
+    ],
+)
+def test_tolerance_matches_dm_control(kwargs):
+    rewards = pytest.importorskip("dm_control.utils.rewards")
+    x = np.linspace(-5, 25, 301)
+    ours = np.asarray(tolerance(jnp.asarray(x), **kwargs))
+    theirs = rewards.tolerance(x, **kwargs)
+    np.testing.assert_allclose(ours, theirs, atol=1e-6)
+
+
+def test_tolerance_hand_values():
+    # cheetah: clip(v / 10, 0, 1); walker standing: gaussian with 0.1 at the margin
+    assert float(tolerance(5.0, (10, np.inf), 10, "linear", 0.0)) == pytest.approx(0.5)
+    assert float(tolerance(0.6, (1.2, np.inf), 0.6)) == pytest.approx(0.1, abs=1e-6)
+    assert float(tolerance(0.3, (0, 0.25))) == 0.0
+
+
+@functools.cache
+def reacher_stack(action_repeat: int, episode_length: int, num_envs: int):
+    env = envs.make(
+        "reacher_easy",
+        action_repeat=action_repeat,
+        episode_length=episode_length,
+        num_envs=num_envs,
+        auto_reset=True,
+    )
+    return env, jax.jit(env.reset), jax.jit(env.step)
+
+
+def test_action_repeat_sums_rewards_and_counts_env_steps():
+    bare = envs.make("reacher_easy")
+    wrapped = envs.make("reacher_easy", action_repeat=3)
+    key = jax.random.PRNGKey(0)
+    a = jnp.array([0.7, -0.4])
+
+    @jax.jit
+    def run(key):
+        s = bare.reset(key)
+        total = 0.0
+        for _ in range(3):
+            s = bare.step(s, a)
+            total = total + s.reward
+        w = wrapped.step(wrapped.reset(key), a)
+        return s.obs, total, w.obs, w.reward, w.info["steps"]
+
+    obs, total, w_obs, w_reward, steps = run(key)
+    np.testing.assert_allclose(w_obs, obs, atol=1e-6)
+    assert float(w_reward) == pytest.approx(float(total), abs=1e-6)
+    assert int(steps) == 3
+
+
+def test_episode_limit_truncates_and_auto_reset_is_fresh():
+    env, reset, step = reacher_stack(action_repeat=2, episode_length=10, num_envs=4)
+    s = reset(jax.random.PRNGKey(1))
+    first = np.asarray(s.info["target_xy"])
+    a = jnp.zeros((4, 2))
+    dones = []
+    for _ in range(5):
+        s = step(s, a)
+        dones.append(np.asarray(s.done))
+    # 10 env steps = 5 agent steps: truncation on the 5th, not before
+    assert np.all(np.stack(dones[:4]) == 0)
+    assert np.all(dones[4] == 1)
+    assert np.all(np.asarray(s.info["truncation"]) == 1)
+    # after the auto-reset every env starts a new, different episode (not a cached first state)
+    second = np.asarray(s.info["target_xy"])
+    assert np.all(np.abs(second - first).max(axis=1) > 1e-4)
+    assert np.all(np.asarray(s.info["steps"]) == 0)
+    s = step(s, a)
+    assert np.all(np.asarray(s.done) == 0)
+
+
+def test_normalize_actions_maps_unit_box_to_actuator_range():
+    env = envs.make("quadruped_walk")
+    low, high = env.action_low, env.action_high
+    # quadruped: yaw [-1, 1], lift [-1, 1.1], extend [-0.8, 0.8] (asymmetric, not rescaled by dmc)
+    np.testing.assert_allclose(low[:3], [-1.0, -1.0, -0.8], atol=1e-6)
+    np.testing.assert_allclose(high[:3], [1.0, 1.1, 0.8], atol=1e-6)
+    norm = envs.NormalizeActions(env)
+    mapped = norm._low + (jnp.array([1.0, -1.0, 0.0]).repeat(4) + 1) * 0.5 * (
+        norm._high - norm._low
+    )
+    np.testing.assert_allclose(np.asarray(mapped)[:3], [high[0], low[1], 0.0], atol=1e-6)
+
+
+@pytest.mark.slow
+def test_brax_ppo_trains_on_our_task_unmodified():
+    """brax's own PPO trainer (its wrappers, its auto-reset) runs on our env as-is."""
+    from brax.training.agents.ppo import train as ppo
+
+    env = envs.make("reacher_easy")
+    progress = []
+    _, params, metrics = ppo.train(
+        environment=env,
+        num_timesteps=4096,
+        episode_length=64,
+        action_repeat=1,
+        num_envs=16,
+        batch_size=16,
+        num_minibatches=2,
+        unroll_length=8,
+        num_updates_per_batch=1,
+        num_evals=2,
+        num_eval_envs=4,
+        seed=0,
+        progress_fn=lambda step, m: progress.append((step, m)),
+    )
+    assert progress and progress[-1][0] >= 4096
+    assert np.isfinite(float(progress[-1][1]["eval/episode_reward"]))
+    leaves = jax.tree.leaves(params)
+    assert leaves and all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
