@@ -132,6 +132,7 @@ class ValueConfig(Section):
 
 
 class ShootingConfig(Section):
+    init_std: float
     samples: int
     elites: int
     iters: int
@@ -159,10 +160,14 @@ class PlannerConfig(Section):
     act_scale: float
     init_weight: float
     gn_damping: float
+    step_control: Literal["none", "lm"]
     cg_iters: int
     adam_lr: float
+    adam_decay: float
+    adam_b2: float
     gamma: float
     warm_start: bool
+    init: Literal["rollout", "random"]
     init_std: float
     shooting: ShootingConfig
 

@@ -1,0 +1,203 @@
+"""LatCo collocation and ColloDreamer's value-bootstrapped collocation (ALGORITHM.md §3, §4.1).
+
+The plan (latents, actions, multipliers) is an explicit :class:`PlanState` carry. One planning call
+runs K primal steps with the chosen solver, each followed by LatCo's multiplier update, inside one
+``lax.fori_loop`` (compiled once). Multipliers start at ``init_lam``/``init_nu`` every call, so the
+constraints are relaxed first and tightened as the multipliers grow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from mjx_collo.config import Config
+from mjx_collo.planners import duals, solvers
+from mjx_collo.planners import objective as obj
+from mjx_collo.planners.objective import Problem
+from mjx_collo.planners.protocol import discounted_return, rollout
+
+InnerFn = Callable[[Any, "PlanState", jax.Array], Any]
+
+
+@struct.dataclass
+class PlanState:
+    """A collocation plan. z: [H, Z] states z_1..z_H; a: [H, A] actions a_0..a_{H-1};
+    lam, nu: [H] dynamics / action-bound multipliers."""
+
+    z: jax.Array
+    a: jax.Array
+    lam: jax.Array
+    nu: jax.Array
+
+
+def reset_multipliers(cfg: Config, plan: PlanState) -> PlanState:
+    """Multipliers back to ``init_lam``/``init_nu`` (every planning call, warm or cold)."""
+    ones = jnp.ones_like(plan.lam)
+    return plan.replace(lam=cfg.planner.init_lam * ones, nu=cfg.planner.init_nu * ones)
+
+
+def init_plan(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> PlanState:
+    """Cold plan: actions ~ N(0, init_std^2); latents rolled out under them (``planner.init:
+    rollout``, feasible start) or N(0, 1) like LatCo (``random``)."""
+    pc = cfg.planner
+    ka, kz = jax.random.split(key)
+    a = pc.init_std * jax.random.normal(ka, (pc.horizon, action_dim))
+    z = rollout(prob.model, prob.params, prob.ctx, a)
+    if pc.init == "random":
+        z = jax.random.normal(kz, z.shape, z.dtype)
+    ones = jnp.ones((pc.horizon,), jnp.float32)
+    return reset_multipliers(cfg, PlanState(z=z, a=a, lam=ones, nu=ones))
+
+
+def shift_plan(cfg: Config, prob: Problem, prev: PlanState, shift: int) -> PlanState:
+    """Warm start: drop the first ``shift`` steps, extend the tail by rolling the last state forward
+    with the last action, and reset the multipliers. prev: plan of the previous call."""
+    horizon = prev.z.shape[0]
+    shift = min(shift, horizon)
+    a_last = prev.a[-1]
+
+    def extend(z: jax.Array, _: None) -> tuple[jax.Array, jax.Array]:
+        nz = prob.model.step(prob.params, z, a_last)
+        return nz, nz
+
+    _, tail = jax.lax.scan(extend, prev.z[-1], None, length=shift)
+    z = jnp.concatenate([prev.z[shift:], tail], axis=0)
+    a = jnp.concatenate([prev.a[shift:], jnp.broadcast_to(a_last, (shift, a_last.shape[0]))])
+    return reset_multipliers(cfg, prev.replace(z=z, a=a))
+
+
+def _gauss_newton_primal(cfg: Config, prob: Problem, unroll: bool) -> tuple[Callable, jax.Array]:
+    """GN / CG step with optional Levenberg-Marquardt step control (``planner.step_control``).
+
+    ``none`` is exact LatCo (full steps, fixed damping). ``lm`` evaluates the GN cost of the new plan
+    at the same multipliers; a step that raises it is rejected and the damping multiplied by 4,
+    an accepted step divides the damping by 3 (never below ``gn_damping``). The solver state is the
+    damping multiplier (a scalar, 1 at the start of every call).
+    """
+    pc = cfg.planner
+
+    def solve(z, a, w, damping):
+        if pc.solver == "gauss_newton":
+            return solvers.gauss_newton_step(prob, z, a, w, damping)
+        return solvers.cg_step(prob, z, a, w, damping, pc.cg_iters, unroll)
+
+    def step(z, a, lam, nu, mult):
+        w = obj.weights(prob, lam, nu)
+        nz, na, raw = solve(z, a, w, pc.gn_damping * mult)
+        if pc.step_control == "none":
+            return nz, na, mult, raw.d
+        old = obj.cost(raw, w)
+        new = obj.cost(obj.raw_residuals(prob, nz, na), w)
+        better = jnp.isfinite(new) & (new <= old)
+        nz, na = jnp.where(better, nz, z), jnp.where(better, na, a)
+        mult = jnp.clip(jnp.where(better, mult / 3.0, mult * 4.0), 1.0, 1e10)
+        return nz, na, mult, raw.d
+
+    return step, jnp.ones((), jnp.float32)
+
+
+def _primal(cfg: Config, prob: Problem, plan: PlanState, unroll: bool) -> tuple[Callable, Any]:
+    """(step_fn, initial solver state) for ``planner.solver``.
+
+    ``step_fn(z, a, lam, nu, state) -> (z', a', state', d)`` with d: [H, Z] the dynamics residual of
+    the input plan.
+    """
+    pc = cfg.planner
+    if pc.solver in ("gauss_newton", "cg"):
+        return _gauss_newton_primal(cfg, prob, unroll)
+    tx = solvers.adam_optimizer(pc.adam_lr, pc.adam_decay, pc.adam_b2, pc.iters)
+
+    def step(z, a, lam, nu, s):
+        return solvers.adam_step(prob, z, a, lam, nu, s, tx)
+
+    return step, tx.init((plan.z, plan.a))
+
+
+def optimize(
+    cfg: Config,
+    prob: Problem,
+    plan: PlanState,
+    inner: tuple[int, InnerFn, Any] | None = None,
+    key: jax.Array | None = None,
+    unroll: bool = False,
+) -> tuple[PlanState, dict[str, jax.Array], Any]:
+    """Run K solver + multiplier iterations from ``plan`` (one ``fori_loop``).
+
+    Args:
+      inner: optional ``(every, fn, state)``; ``state = fn(state, plan, key)`` runs after every
+        ``every``-th iteration (plan_inner value learning). Needs ``key``.
+      unroll: unroll the loops (only for FLOP counting: XLA counts a loop body once).
+    Returns:
+      (plan, metrics, inner_state).
+    """
+    pc = cfg.planner
+    step, solver_state = _primal(cfg, prob, plan, unroll)
+    every, inner_fn, inner_state = inner if inner is not None else (0, None, ())
+    if key is None:
+        key = jnp.zeros((2,), jnp.uint32)
+    lo, hi = pc.lam_clip
+
+    def body(k, carry):
+        p, s, first, istate = carry
+        z, a, s, d = step(p.z, p.a, p.lam, p.nu, s)
+        dv = duals.dyn_violation(d)
+        av = duals.act_violation(p.a)
+        lam = duals.update_multiplier(p.lam, dv, pc.dyn_eps, pc.lm_alpha, pc.lm_eta, lo, hi)
+        nu = duals.update_multiplier(p.nu, av, pc.act_eps, pc.lm_alpha, pc.lm_eta, lo, hi)
+        feasible = (jnp.max(dv) <= pc.dyn_eps) & (jnp.max(av) <= pc.act_eps)
+        first = jnp.where((first < 0) & feasible, k, first)
+        p = PlanState(z=z, a=a, lam=lam, nu=nu)
+        if inner_fn is not None:
+            istate = jax.lax.cond(
+                (k + 1) % every == 0,
+                lambda st: inner_fn(st, p, jax.random.fold_in(key, k)),
+                lambda st: st,
+                istate,
+            )
+        return p, s, first, istate
+
+    init = (plan, solver_state, jnp.asarray(-1, jnp.int32), inner_state)
+    plan, _, first, inner_state = jax.lax.fori_loop(0, pc.iters, body, init, unroll=unroll)
+    metrics = plan_metrics(prob, plan, pc.dyn_eps, pc.act_eps)
+    # Iterations to feasibility: index of the first feasible iterate (K when only the final plan
+    # is, K + 1 when none is).
+    last_ok = metrics["feasible"] > 0
+    first = jnp.where(first >= 0, first, jnp.where(last_ok, pc.iters, pc.iters + 1))
+    metrics["iters_to_feasible"] = first.astype(jnp.float32)
+    return plan, metrics, inner_state
+
+
+def plan_metrics(
+    prob: Problem, plan: PlanState, dyn_eps: Any, act_eps: Any
+) -> dict[str, jax.Array]:
+    """Diagnostics of a final plan (paper Figs. 2, 10, 11; LC `opt_*`), all scalars.
+
+    ``dyn_viol``/``act_viol`` are per-step means (LC); ``shadow_return`` is the objective J of the
+    feasible rollout of the clipped plan actions, i.e. what the plan actually achieves in the model.
+    """
+    j, rewards, raw = obj.exact_terms(prob, plan.z, plan.a)
+    dv = duals.dyn_violation(raw.d)
+    av = duals.act_violation(plan.a)
+    zs = rollout(prob.model, prob.params, prob.ctx, jnp.clip(plan.a, -1.0, 1.0))
+    rs = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, zs)
+    vs = obj.bootstrap_value(prob, zs[-1])
+    return {
+        "dyn_viol": jnp.mean(dv),
+        "dyn_viol_max": jnp.max(dv),
+        "act_viol": jnp.mean(av),
+        "lam_mean": jnp.mean(plan.lam),
+        "lam_max": jnp.max(plan.lam),
+        "nu_mean": jnp.mean(plan.nu),
+        "nu_max": jnp.max(plan.nu),
+        "plan_reward": jnp.mean(rewards),
+        "plan_value": raw.val,
+        "plan_return": j,
+        "shadow_reward": jnp.mean(rs),
+        "shadow_return": discounted_return(rs, vs, prob.gamma, prob.bootstrap),
+        "feasible": ((jnp.max(dv) <= dyn_eps) & (jnp.max(av) <= act_eps)).astype(jnp.float32),
+    }

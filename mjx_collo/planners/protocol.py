@@ -1,0 +1,111 @@
+"""The latent-model protocol the planners are written against, and rollouts through it.
+
+A :class:`LatentModel` is a NamedTuple of pure, *unbatched* functions; callers vmap over envs and
+seeds. ``params`` is an opaque pytree (world-model params, plus target-value params when the model
+bootstraps). Plan-space states ``z`` are flat vectors ``[Z]``; what they mean (full ``[stoch, deter]``
+or reduced ``deter``) is the world model's business.
+
+Conventions (ALGORITHM.md §4.1, pitfall 7):
+  * ``reward(params, z)`` is the reward received on *arriving* in ``z``;
+  * ``value(params, z)`` is the discounted value of ``z`` *excluding* its own reward, so the planner
+    maximises ``J = sum_{k=1..H} gamma^(k-1) r(z_k) + gamma^H V(z_H)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+Params = Any
+Context = Any
+
+
+class LatentModel(NamedTuple):
+    """Pure, unbatched latent-model functions (the planner's only view of the world model).
+
+    Attributes:
+      start: ``(params, ctx, a [A]) -> z1 [Z]`` deterministic transition out of the filtered
+        posterior context ``ctx`` (any pytree) under the first action.
+      step: ``(params, z [Z], a [A]) -> z' [Z]`` deterministic transition between plan states.
+      reward: ``(params, z [Z]) -> []`` reward of arriving in ``z``.
+      value: ``(params, z [Z]) -> []`` frozen (target) value of ``z`` excluding its own reward, or
+        None when the model has no value.
+      feat: ``(params, z [Z]) -> [F]`` value-network input features of ``z`` (needed only by the
+        plan-based value-learning modes), or None.
+      ctx_feat: ``(params, ctx) -> [F]`` features of the context (the plan's start state), or None.
+    """
+
+    start: Callable[[Params, Context, jax.Array], jax.Array]
+    step: Callable[[Params, jax.Array, jax.Array], jax.Array]
+    reward: Callable[[Params, jax.Array], jax.Array]
+    value: Callable[[Params, jax.Array], jax.Array] | None = None
+    feat: Callable[[Params, jax.Array], jax.Array] | None = None
+    ctx_feat: Callable[[Params, Context], jax.Array] | None = None
+
+
+def attach_value(
+    model: LatentModel,
+    feat: Callable[[Params, jax.Array], jax.Array],
+    value: Callable[[Params, jax.Array], jax.Array],
+) -> LatentModel:
+    """Model whose params are ``(wm_params, value_params)`` and whose value is ``value(vp, feat(z))``.
+
+    Args:
+      model: world-model functions over ``wm_params`` (its own ``value`` is replaced; its
+        ``ctx_feat`` is kept).
+      feat: ``(wm_params, z [Z]) -> [F]``.
+      value: ``(value_params, f [F]) -> []`` deterministic (target) value network.
+    """
+    ctx_feat = model.ctx_feat
+    return LatentModel(
+        start=lambda p, ctx, a: model.start(p[0], ctx, a),
+        step=lambda p, z, a: model.step(p[0], z, a),
+        reward=lambda p, z: model.reward(p[0], z),
+        value=lambda p, z: value(p[1], feat(p[0], z)),
+        feat=lambda p, z: feat(p[0], z),
+        ctx_feat=None if ctx_feat is None else (lambda p, ctx: ctx_feat(p[0], ctx)),
+    )
+
+
+def latent_size(model: LatentModel, params: Params, ctx: Context, action_dim: int) -> int:
+    """Size Z of the plan-space state (by abstract evaluation; no FLOPs)."""
+    a = jax.ShapeDtypeStruct((action_dim,), jnp.float32)
+    out = jax.eval_shape(model.start, params, ctx, a)
+    return int(out.shape[-1])
+
+
+def rollout(model: LatentModel, params: Params, ctx: Context, actions: jax.Array) -> jax.Array:
+    """Feasible latent trajectory under ``actions``.
+
+    Args:
+      actions: [H, A] actions a_0..a_{H-1}.
+    Returns:
+      z: [H, Z] states z_1..z_H (z_1 = start(ctx, a_0), z_{t+1} = step(z_t, a_t)).
+    """
+    z1 = model.start(params, ctx, actions[0])
+
+    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+        nz = model.step(params, z, a)
+        return nz, nz
+
+    _, rest = jax.lax.scan(body, z1, actions[1:])
+    return jnp.concatenate([z1[None], rest], axis=0)
+
+
+def discounts(gamma: jax.Array | float, horizon: int) -> jax.Array:
+    """[H] weights gamma^(k-1) of the rewards r(z_k), k = 1..H."""
+    return jnp.power(jnp.asarray(gamma, jnp.float32), jnp.arange(horizon, dtype=jnp.float32))
+
+
+def discounted_return(
+    rewards: jax.Array, last_value: jax.Array, gamma: jax.Array | float, bootstrap: bool
+) -> jax.Array:
+    """``sum_k gamma^(k-1) r_k (+ gamma^H V(z_H))``; rewards: [H]; last_value: []."""
+    h = rewards.shape[0]
+    ret = jnp.sum(discounts(gamma, h) * rewards)
+    if bootstrap:
+        ret = ret + jnp.power(jnp.asarray(gamma, jnp.float32), h) * last_value
+    return ret
