@@ -72,7 +72,9 @@ class GRUCell(nn.Module):
     ``cand = tanh(sigmoid(reset) * cand)``; ``update = sigmoid(update - 1)``;
     ``h' = update * cand + (1 - update) * h``. One fused matmul per step.
 
-    Call: ``(x: [..., X], h: [..., units]) -> h': [..., units]``.
+    Call: ``(x: [..., X], h: [..., units], tap=None) -> h': [..., units]``. ``tap`` (optional,
+    ``[..., 3 * units]``) is added to the dense output before the norm: a zero tap whose gradient
+    is the dense layer's output cotangent (used to batch weight gradients outside a time scan).
     """
 
     units: int
@@ -80,8 +82,10 @@ class GRUCell(nn.Module):
     update_bias: float = -1.0
 
     @nn.compact
-    def __call__(self, x: jax.Array, h: jax.Array) -> jax.Array:
+    def __call__(self, x: jax.Array, h: jax.Array, tap: jax.Array | None = None) -> jax.Array:
         parts = nn.Dense(3 * self.units)(jnp.concatenate([x, h], -1))
+        if tap is not None:
+            parts = parts + tap
         if self.layernorm:
             parts = nn.LayerNorm()(parts)
         reset, cand, update = jnp.split(parts, 3, axis=-1)

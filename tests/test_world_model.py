@@ -1,5 +1,6 @@
 """World model: shapes, scan-vs-loop equivalence, KL balancing/free nats by gradients,
-straight-through samples, planning adapter, optimizer path, non-finite skip, J_latent.
+straight-through samples, planning adapter, optimizer path, non-finite skip, J_latent, and a
+learning test on MJX cheetah data (one-step and 15-step open-loop prediction vs copy-last).
 
 XLA's CPU compile time dominates here, so computations are jitted once and shared (``_model``).
 """
@@ -390,6 +391,24 @@ def test_imagine_fns_protocol():
 # ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("latent", LATENTS)
+def test_batched_weight_gradients_equal_plain_autodiff(latent):
+    """value_and_grad forms the scanned layers' weight gradients outside the scan (taps)."""
+    cfg, params, batch, _, key, _, _ = _model(latent)
+
+    @jax.jit
+    def both(params, batch, key):
+        (total, _, _), g = wm.value_and_grad(cfg, params, batch, key)
+        flat, unravel = jax.flatten_util.ravel_pytree(params)
+        ref_total, ref = jax.value_and_grad(lambda f: wm.loss(cfg, unravel(f), batch, key)[0])(flat)
+        return total, g, ref_total, ref
+
+    total, g, ref_total, ref = both(params, batch, key)
+    np.testing.assert_allclose(total, ref_total, rtol=1e-6)
+    np.testing.assert_allclose(g, ref, atol=1e-5 * float(jnp.abs(ref).max()))
+    assert float(jnp.abs(ref).max()) > 0
+
+
 def test_train_step_reduces_loss_and_skips_nonfinite():
     cfg, params = _setup("categorical", "wm.optim.lr=3e-3")
     opt = wm.init_opt_state(cfg, params)
@@ -510,3 +529,133 @@ def test_j_latent_enters_the_loss_only_when_given():
     assert "j_latent" in losses and "j_latent" not in base_losses
     np.testing.assert_allclose(total, base + 0.5 * losses["j_latent"], rtol=1e-5)
     np.testing.assert_allclose(losses["j_latent"], -metrics["j_latent"], rtol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------
+# Learning on real MJX cheetah data (slow: MJX compile + a short fit per latent kind)
+# ------------------------------------------------------------------------------------------
+
+REPEAT, STEPS = 2, 120  # agent steps per episode, action repeat 2 (240 env steps)
+CONTEXT, HORIZON = 20, 15
+
+
+def _cheetah_episodes(key: jax.Array, n: int) -> dict[str, jax.Array]:
+    """``n`` random-policy episodes as replay rows ``[n, STEPS + 1, ...]`` (row convention:
+    obs_t, the action a_{t-1} that led into it, the reward r_t received on arrival, is_first).
+    One compile: vmapped reset, then one scan over env steps (each action repeated)."""
+    envs = pytest.importorskip("envs")  # the MJX tasks live outside mjx_collo
+    env = envs.make("cheetah_run")
+
+    def one(key):
+        k_reset, k_act = jax.random.split(key)
+        state = env.reset(k_reset)
+        actions = jax.random.uniform(k_act, (STEPS, env.action_size), minval=-1, maxval=1)
+
+        def env_step(state, a):
+            state = env.step(state, a)
+            return state, (state.obs, state.reward)
+
+        _, (obs, rew) = jax.lax.scan(env_step, state, jnp.repeat(actions, REPEAT, axis=0))
+        return {
+            "obs": jnp.concatenate([state.obs[None], obs[REPEAT - 1 :: REPEAT]]),
+            "action": jnp.concatenate([jnp.zeros((1, env.action_size)), actions]),
+            "reward": jnp.concatenate([jnp.zeros(1), rew.reshape(STEPS, REPEAT).sum(-1)]),
+            "is_first": jnp.arange(STEPS + 1) == 0,
+        }
+
+    return jax.jit(jax.vmap(one))(jax.random.split(key, n))
+
+
+@functools.cache
+def _cheetah_data():
+    pytest.importorskip("envs")
+    data = _cheetah_episodes(jax.random.key(0), 32)
+    assert np.isfinite(data["obs"]).all() and float(jnp.abs(data["reward"]).max()) > 0
+    train = {k: v[:24] for k, v in data.items()}
+    test = {k: v[24:] for k, v in data.items()}
+    return train, test
+
+
+def _fit(cfg, train, key, updates=250, batch=16, length=32):
+    params = wm.init(cfg, key, (train["obs"].shape[-1],), train["action"].shape[-1])
+    opt = wm.init_opt_state(cfg, params)
+    n_eps, n_rows = train["is_first"].shape
+
+    @jax.jit
+    def fit(params, opt, key):
+        def body(carry, key):
+            params, opt = carry
+            k_ep, k_start, k_step = jax.random.split(key, 3)
+            ep = jax.random.randint(k_ep, (batch, 1), 0, n_eps)
+            start = jax.random.randint(k_start, (batch, 1), 0, n_rows - length + 1)
+            idx = start + jnp.arange(length)
+            sample = {k: v[ep, idx] for k, v in train.items()}
+            params, opt, metrics, _ = wm.train_step(cfg, params, opt, sample, k_step)
+            return (params, opt), metrics
+
+        (params, opt), metrics = jax.lax.scan(body, (params, opt), jax.random.split(key, updates))
+        return params, metrics
+
+    return fit(params, opt, key)
+
+
+def _prediction_errors(cfg, params, test, key):
+    """MSE of (1-step, 15-step open-loop) predictions vs copy-last, in raw observation units."""
+
+    @jax.jit
+    def run(params, key):
+        ctx = {k: v[:, :CONTEXT] for k, v in test.items()}
+        post, _ = wm.observe(cfg, params, ctx["obs"], ctx["action"], ctx["is_first"], key)
+        start = jax.tree.map(lambda x: x[:, -1], post)
+        actions = test["action"][:, CONTEXT : CONTEXT + HORIZON]  # a_{t} leading into o_{t+1}
+        samples = 16
+
+        def rollout(k):
+            states = wm.imagine(cfg, params, start, actions, k)
+            return wm.predict_obs(cfg, params, wm.get_feat(states))
+
+        pred = jax.vmap(rollout)(jax.random.split(key, samples)).mean(0)  # [B, H, O]
+        truth = test["obs"][:, CONTEXT : CONTEXT + HORIZON]
+        last = test["obs"][:, CONTEXT - 1 : CONTEXT]
+        err = jnp.mean(jnp.square(pred - truth), (0, 2))  # [H]
+        base = jnp.mean(jnp.square(last - truth), (0, 2))
+        return err, base
+
+    err, base = run(params, key)
+    return {
+        "model_1": float(err[0]),
+        "copy_1": float(base[0]),
+        "model_15": float(err.mean()),
+        "copy_15": float(base.mean()),
+    }
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("latent", ["gaussian", "categorical"])
+def test_world_model_beats_copy_last_on_held_out_cheetah(latent):
+    train, test = _cheetah_data()
+    overrides = [
+        f"wm.latent={latent}",
+        "wm.deter=128",
+        "wm.hidden=128",
+        "wm.units=256",
+        "wm.enc_layers=2",
+        "wm.dec_layers=2",
+        "wm.reward_layers=2",
+        "wm.optim.lr=3e-3",
+    ]
+    if latent == "gaussian":
+        overrides += ["wm.stoch=16", "wm.kl.free=1.0", "wm.gru_layernorm=false"]
+    else:
+        overrides += ["wm.stoch=16", "wm.classes=16"]
+    cfg = config.load(overrides=overrides).wm
+    params, metrics = _fit(cfg, train, jax.random.key(2))
+    assert np.all(np.asarray(metrics["nonfinite"]) == 0)
+    first, last = metrics["loss/obs"][:20].mean(), metrics["loss/obs"][-20:].mean()
+    assert last < 0.5 * first
+    e = _prediction_errors(cfg, params, test, jax.random.key(3))
+    print(latent, {k: round(v, 4) for k, v in e.items()})
+    # Measured (contended 2-core CPU, seeds fixed): model ~1.4-1.9 vs copy-last ~10.9 at 1 step,
+    # ~1.3 vs ~17.7 averaged over 15 open-loop steps.
+    assert e["model_1"] < 0.5 * e["copy_1"], e
+    assert e["model_15"] < 0.5 * e["copy_15"], e
