@@ -146,13 +146,20 @@ def test_regularisers_deterministic_outside_training(norm):
     state = _init(cfg, 0, 5)
     f = jax.random.normal(jax.random.PRNGKey(1), (4, 6, 5))
     batch = {"feat": f, "reward": jnp.ones((4, 6)), "is_first": jnp.zeros((4, 6), bool)}
-    new, m = _train(cfg, state, batch, 2)
+
+    @jax.jit
+    def run(state, key):
+        new, m = V.train_step(cfg, state, batch, key)
+        # Unbatched feature (as the planner calls it), twice, and the same row inside a batch.
+        one = V.apply_value(cfg, new.params, f[0, 0])
+        again = V.apply_value(cfg, new.params, f[0, 0])
+        return new, m, one, again, V.apply_value(cfg, new.params, f)[0, 0]
+
+    new, m, one, again, batched = run(state, jax.random.PRNGKey(2))
     assert float(m["value/nonfinite"]) == 0.0
-    # Unbatched feature (as the planner calls it) gives the same deterministic value twice.
-    one = V.apply_value(cfg, new.params, f[0, 0])
     assert one.shape == ()
-    np.testing.assert_allclose(one, V.apply_value(cfg, new.params, f[0, 0]))
-    np.testing.assert_allclose(V.apply_value(cfg, new.params, f)[0, 0], one, rtol=1e-5)
+    np.testing.assert_allclose(one, again)
+    np.testing.assert_allclose(batched, one, rtol=1e-5)
     if norm == "batch":  # running statistics were updated by the training step
         old = jax.tree.leaves(state.params["batch_stats"])
         upd = jax.tree.leaves(new.params["batch_stats"])
