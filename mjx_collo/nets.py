@@ -157,7 +157,7 @@ def init_params(module: nn.Module, key: jax.Array, *args: jax.Array) -> dict:
 def init_many(specs: dict[str, tuple[nn.Module, tuple]], key: jax.Array) -> dict:
     """:func:`init_params` for several modules ``{name: (module, args)}`` with one RNG draw."""
     shapes = {
-        name: jax.eval_shape(lambda a, m=m: m.init(jax.random.key(0), *a)["params"], args)
+        name: jax.eval_shape(lambda a, m=m: m.init(key, *a)["params"], args)
         for name, (m, args) in specs.items()
     }
     leaves, treedef = jax.tree_util.tree_flatten_with_path(shapes)

@@ -23,6 +23,7 @@ sampling noise for all steps is drawn in one call.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -123,7 +124,22 @@ def init(
     cfg: WorldModelConfig, key: jax.Array, obs_shape: tuple[int, ...], action_dim: int
 ) -> Params:
     """World-model parameters for observations ``obs_shape`` (``(O,)`` or ``(64, 64, C)``)."""
-    obs_shape = tuple(obs_shape)
+    obs_shape = tuple(int(n) for n in obs_shape)
+    try:
+        fn = _jitted_init(cfg, obs_shape, action_dim)  # compiled once per config
+    except TypeError:  # unhashable config (traced swept values): trace inline
+        fn = functools.partial(_init, cfg, obs_shape, action_dim)
+    return fn(key)
+
+
+@functools.lru_cache(maxsize=16)
+def _jitted_init(cfg: WorldModelConfig, obs_shape: tuple[int, ...], action_dim: int):
+    return jax.jit(functools.partial(_init, cfg, obs_shape, action_dim))
+
+
+def _init(
+    cfg: WorldModelConfig, obs_shape: tuple[int, ...], action_dim: int, key: jax.Array
+) -> Params:
     mods = {**_rssm_nets(cfg), **_io_nets(cfg, obs_shape)}
     s, d, h = stoch_size(cfg), cfg.deter, cfg.hidden
     enc_name = "enc_conv" if len(obs_shape) == PIXEL_NDIM else "enc_mlp"
@@ -145,7 +161,7 @@ def init(
     }
 
     specs = {name: (mod, dummy[name]) for name, mod in mods.items()}
-    return jax.jit(lambda k: nets.init_many(specs, k))(key)
+    return nets.init_many(specs, key)
 
 
 def _is_pixel(params: Params) -> bool:
