@@ -15,10 +15,18 @@ action ``a_{t-1}`` that led into ``obs_t``, the reward ``r_t`` received on arriv
 h_{t-1})``; at ``is_first`` the previous state *and* the previous action are reset to zeros. The
 reward head ``r̂(f_t)`` predicts ``r_t``.
 
-Speed (CPU): inside the ``lax.scan`` over time only the recurrent chain runs (input layer, GRU,
-posterior layers, sample). The encoder, the embedding half of the posterior layer, the prior head,
-the decoder and the reward head are applied to all ``B*T`` rows at once outside the scan, and the
-sampling noise for all steps is drawn in one call.
+Speed (CPU, measured by benchmarks/bench_model.py): inside the ``lax.scan`` over time only the
+recurrent chain runs (input layer, GRU, posterior layers, sample). The encoder, the embedding half
+of the posterior layer, the prior head, the decoder and the reward head are applied to all ``B*T``
+rows at once outside the scan; the sampling noise for all steps is drawn in one call (one uniform
+per categorical group: inverse-CDF sampling); the weight gradients of the scanned dense layers are
+formed after the scan as one large matmul each (:func:`value_and_grad`); the optimizer runs on the
+flat parameter vector.
+
+Main entry points: :func:`init`, :func:`observe` / :func:`obs_step` (posterior filtering),
+:func:`img_step` / :func:`imagine` / :func:`imagine_policy` (prior), :func:`loss`,
+:func:`value_and_grad`, :func:`train_step`, :func:`planning_fns` and :func:`imagine_fns`
+(protocols for the planner and the Dreamer actor), :func:`j_latent`.
 """
 
 from __future__ import annotations
