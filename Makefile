@@ -19,7 +19,7 @@ PYTEST_ARGS ?=
 # Quiet noisy deprecation chatter from dependencies.
 export PYTHONWARNINGS ?= ignore::DeprecationWarning
 
-.PHONY: install train sweep eval test test-fast lint format bench bench-envs bench-model bench-planner clean
+.PHONY: install train sweep eval test test-all lint format bench bench-envs bench-model bench-planner clean
 
 install: $(STAMP)
 
@@ -41,11 +41,13 @@ sweep: install
 eval: install
 	$(PY) -m mjx_collo.evaluate --ckpt $(CKPT) --episodes $(EPISODES) $(if $(filter 1,$(VIDEO)),--video) $(ARGS)
 
+# The CI suite: everything not marked slow (< 15 min on 2 cores).
 test: install
-	$(PY) -m pytest -q $(PYTEST_ARGS)
-
-test-fast: install
 	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+# Everything, including the statistical env-parity, learning and multi-process tests.
+test-all: install
+	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: install
 	$(PY) -m ruff check .

@@ -16,7 +16,7 @@ CONTROL_DT = 0.01
 
 # Tuned MJX options (evidence: envs/assets/README.md). Self-collisions never occur in cheetah, so
 # floor-only contacts are exact; the solver settings were checked statistically against dm_control.
-TUNED = dict(iterations=2, ls_iterations=4, eulerdamp=True, max_contact_points=6)
+TUNED = dict(iterations=3, ls_iterations=6, eulerdamp=False, max_contact_points=6)
 
 
 def build_model(physics: str) -> mujoco.MjModel:

@@ -20,7 +20,7 @@ HEIGHT_STEP = 0.01  # dm_control raises the body in 1 cm steps until nothing tou
 # Tuned MJX options (evidence: envs/assets/README.md): floor-vs-body contacts only (dm_control
 # also lets legs touch each other and the torso; the random-policy return is unchanged), the
 # deepest max_contact_points contacts, fewer solver iterations.
-TUNED = dict(iterations=2, ls_iterations=4, eulerdamp=True, max_contact_points=8)
+TUNED = dict(iterations=2, ls_iterations=4, eulerdamp=False, max_contact_points=8)
 
 _GEOM = mujoco.mjtGeom
 

@@ -15,7 +15,7 @@ CONTROL_DT = 0.025
 
 # Tuned MJX options (evidence: envs/assets/README.md). Walker geoms already collide only with the
 # floor (conaffinity 0); MJX keeps the deepest contacts per condim group.
-TUNED = dict(iterations=2, ls_iterations=4, eulerdamp=True, max_contact_points=4)
+TUNED = dict(iterations=2, ls_iterations=4, eulerdamp=False, max_contact_points=4)
 
 
 def build_model(physics: str) -> mujoco.MjModel:

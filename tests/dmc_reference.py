@@ -53,6 +53,12 @@ def rollout_states(task: str, n_states: int, seed: int = 0, stride: int = 3):
         step += 1
         if step % stride == 0:
             p = env.physics
+            if task.startswith("reacher") and len(states) % 3 == 0:
+                # The reward is sparse: put the target near the finger in a third of the states
+                # (inside or just outside the threshold) so the reward is exercised both ways.
+                finger = p.named.data.geom_xpos["finger", :2]
+                offset = rng.uniform(-1, 1, 2) * 0.04
+                p.named.model.geom_pos["target", :2] = finger + offset
             states.append(
                 dict(
                     qpos=p.data.qpos.copy(),
@@ -104,3 +110,40 @@ def episode_returns(task: str, episodes: int, seed: int) -> np.ndarray:
             total += ts.reward
         out.append(total)
     return np.array(out)
+
+
+def parity_reference(task: str, n_states: int, seed: int = 11, action_seed: int = 5) -> dict:
+    """States from a random rollout, reference obs/reward at each state and after one control
+    step with a random action (everything the parity tests need from dm_control)."""
+    dm, states = rollout_states(task, n_states, seed=seed)
+    rng = np.random.default_rng(action_seed)
+    actions = random_actions(rng, dm.action_spec(), len(states))
+    rows = []
+    for s, a in zip(states, actions, strict=True):
+        set_physics(dm, s)
+        o0, r0 = observe(dm)
+        o1, r1 = control_step(dm, a)
+        rows.append((o0, r0, o1, r1))
+    o0, r0, o1, r1 = (np.array(x) for x in zip(*rows, strict=True))
+    stacked = {k: np.stack([s[k] for s in states]) for k in states[0]}
+    return dict(states=stacked, actions=actions, obs0=o0, rew0=r0, obs1=o1, rew1=r1)
+
+
+def reset_statistics(task: str, n: int, seed: int) -> dict:
+    """Reset-distribution samples: reacher target radius/size, quadruped upright and height."""
+    env = load(task, seed)
+    out: dict[str, list] = {}
+    for _ in range(n):
+        env.reset()
+        p = env.physics
+        if task.startswith("reacher"):
+            out.setdefault("radius", []).append(
+                float(np.linalg.norm(p.named.model.geom_pos["target", :2]))
+            )
+            out.setdefault("size", []).append(float(p.named.model.geom_size["target", 0]))
+            out.setdefault("finger", []).append(float(p.named.model.geom_size["finger", 0]))
+        if task.startswith("quadruped"):
+            out.setdefault("upright", []).append(float(p.named.data.xmat["torso", "zz"]))
+            out.setdefault("height", []).append(float(p.named.data.qpos["root"][2]))
+            out.setdefault("ncon", []).append(int(p.data.ncon))
+    return {k: np.array(v) for k, v in out.items()}

@@ -136,7 +136,7 @@ def test_normalize_actions_maps_unit_box_to_actuator_range():
     np.testing.assert_allclose(low[:3], [-1.0, -1.0, -0.8], atol=1e-6)
     np.testing.assert_allclose(high[:3], [1.0, 1.1, 0.8], atol=1e-6)
     norm = envs.NormalizeActions(env)
-    mapped = norm._low + (jnp.array([1.0, -1.0, 0.0]).repeat(4) + 1) * 0.5 * (
+    mapped = norm._low + (jnp.tile(jnp.array([1.0, -1.0, 0.0]), 4) + 1) * 0.5 * (
         norm._high - norm._low
     )
     np.testing.assert_allclose(np.asarray(mapped)[:3], [high[0], low[1], 0.0], atol=1e-6)
