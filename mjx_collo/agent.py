@@ -1,0 +1,179 @@
+"""Acting: posterior filtering -> planner (MPC) or Dreamer actor -> exploration noise.
+
+All functions act on a batch of ``E`` envs (the agent carry has a leading env axis) and are pure;
+*when* to replan is decided by the caller from an unbatched schedule (see :mod:`mjx_collo.trainer`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from mjx_collo import actor as actor_lib
+from mjx_collo import planner as planner_lib
+from mjx_collo import value as value_lib
+from mjx_collo import world_model as wm_lib
+from mjx_collo.config import Config
+from mjx_collo.planners.protocol import LatentModel
+
+
+@struct.dataclass
+class AgentCarry:
+    """Per-env acting state (leading axis E).
+
+    post: posterior RSSM state at the last observation; prev_action: [E, A] action executed last
+    (fed to the next filter step); mpc: action caches (None for the Dreamer actor).
+    """
+
+    post: wm_lib.RSSMState
+    prev_action: jax.Array
+    mpc: Any
+
+
+class Agent(NamedTuple):
+    cfg: Config
+    action_dim: int
+    fns: wm_lib.PlanningFns
+    model: LatentModel | None
+    planner: planner_lib.Planner | None
+
+    @property
+    def uses_actor(self) -> bool:
+        return self.cfg.planner.kind == "dreamer"
+
+    @property
+    def cache_len(self) -> int:
+        return 1 if self.uses_actor else planner_lib.cache_len(self.cfg)
+
+
+def value_bootstrap(cfg: Config) -> bool:
+    return (
+        cfg.planner.kind in ("collodreamer", "mppi_value")
+        and cfg.value.enabled
+        and (cfg.value.bootstrap)
+    )
+
+
+def make_agent(cfg: Config, action_dim: int) -> Agent:
+    fns = wm_lib.planning_fns(cfg.wm, cfg.planner.space)
+    if cfg.planner.kind == "dreamer":
+        return Agent(cfg, action_dim, fns, None, None)
+    if value_bootstrap(cfg):
+
+        def value(vp, f):
+            return value_lib.clip_value(cfg.value, value_lib.apply_value(cfg.value, vp, f))
+
+    else:
+        value = None
+    model = LatentModel(
+        start=lambda p, ctx, a: fns.start(p[0], ctx, a),
+        step=lambda p, z, a: fns.step(p[0], z, a),
+        reward=lambda p, z: fns.reward(p[0], z),
+        value=None if value is None else (lambda p, z: value(p[1], fns.feat(p[0], z))),
+        feat=lambda p, z: fns.feat(p[0], z),
+        ctx_feat=lambda p, ctx: fns.ctx_feat(p[0], ctx),
+    )
+    return Agent(cfg, action_dim, fns, model, planner_lib.make_planner(cfg, model, action_dim))
+
+
+def imagination_model(cfg: Config) -> actor_lib.ImaginationModel:
+    """The world model as the Dreamer actor's stochastic imagination protocol."""
+    return actor_lib.ImaginationModel(
+        img_step=lambda p, s, a, k: wm_lib.img_step(cfg.wm, p, s, a, k),
+        get_feat=wm_lib.get_feat,
+        reward=lambda p, f: wm_lib.reward(cfg.wm, p, f),
+    )
+
+
+def plan_params(wm_params: Any, value_target: Any) -> tuple[Any, Any]:
+    """Params of the planner's latent model: (world model, frozen target value)."""
+    return (wm_params, value_target)
+
+
+def init_carry(agent: Agent, params: tuple[Any, Any], num_envs: int, key: jax.Array) -> AgentCarry:
+    cfg = agent.cfg
+    post = wm_lib.initial_state(cfg.wm, (num_envs,))
+    mpc = None
+    if agent.planner is not None:
+        one = jax.tree.map(lambda x: x[0], post)
+        mpc0 = planner_lib.mpc_init(agent.planner, params, one, key)
+        mpc = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_envs,) + x.shape), mpc0)
+    return AgentCarry(post=post, prev_action=jnp.zeros((num_envs, agent.action_dim)), mpc=mpc)
+
+
+def reset_carry(agent: Agent, carry: AgentCarry) -> AgentCarry:
+    """Episode boundary: forget the posterior, the last action and the action caches."""
+    zero = jax.tree.map(jnp.zeros_like, carry.post)
+    mpc = None if carry.mpc is None else jax.vmap(planner_lib.mpc_reset)(carry.mpc)
+    return carry.replace(post=zero, prev_action=jnp.zeros_like(carry.prev_action), mpc=mpc)
+
+
+def observe(
+    agent: Agent,
+    wm_params: Any,
+    carry: AgentCarry,
+    obs: jax.Array,
+    is_first: jax.Array,
+    key: jax.Array,
+) -> AgentCarry:
+    """Posterior filtering of the new observations ``obs [E, ...]`` (``is_first [E]``)."""
+    post, _ = wm_lib.obs_step(
+        agent.cfg.wm, wm_params, carry.post, carry.prev_action, obs, is_first, key
+    )
+    return carry.replace(post=post)
+
+
+def _env_mean(metrics: dict[str, jax.Array]) -> dict[str, jax.Array]:
+    return {k: jnp.mean(v) for k, v in metrics.items()}
+
+
+def replan(
+    agent: Agent, params: tuple[Any, Any], carry: AgentCarry, key: jax.Array
+) -> tuple[AgentCarry, dict[str, jax.Array]]:
+    """One planning call per env from its posterior; metrics averaged over envs."""
+    keys = jax.random.split(key, carry.prev_action.shape[0])
+    mpc, metrics = jax.vmap(planner_lib.replan, in_axes=(None, None, 0, 0, 0))(
+        agent.planner, params, carry.post, carry.mpc, keys
+    )
+    return carry.replace(mpc=mpc), _env_mean(metrics)
+
+
+def replan_inner(
+    agent: Agent,
+    params: tuple[Any, Any],
+    carry: AgentCarry,
+    vstate: value_lib.ValueState,
+    key: jax.Array,
+) -> tuple[AgentCarry, dict[str, jax.Array], value_lib.ValueState]:
+    """``plan_inner`` value learning: value steps inside the planning loop, gradients averaged
+    over envs so every env ends with the same value state."""
+    keys = jax.random.split(key, carry.prev_action.shape[0])
+
+    def one(ctx, mpc, k):
+        return planner_lib.replan_value(
+            agent.planner, agent.model, params, ctx, mpc, vstate, k, axis_name="envs"
+        )
+
+    mpc, metrics, vs = jax.vmap(one, axis_name="envs")(carry.post, carry.mpc, keys)
+    return carry.replace(mpc=mpc), _env_mean(metrics), jax.tree.map(lambda x: x[0], vs)
+
+
+def act(
+    agent: Agent, params: Any, carry: AgentCarry, key: jax.Array, training: bool
+) -> tuple[jax.Array, AgentCarry]:
+    """Actions ``[E, A]`` in [-1, 1] (noise in training only); records them as ``prev_action``.
+
+    ``params``: the actor variables for the Dreamer actor, else unused (actions come from caches).
+    """
+    cfg = agent.cfg
+    keys = jax.random.split(key, carry.prev_action.shape[0])
+    if agent.uses_actor:
+        feat = wm_lib.get_feat(carry.post)
+        a = jax.vmap(lambda f, k: actor_lib.act(cfg.actor, params, f, k, training))(feat, keys)
+        a = jnp.clip(a, -1.0, 1.0)
+        return a, carry.replace(prev_action=a)
+    a, mpc = jax.vmap(lambda m, k: planner_lib.next_action(cfg, m, k, training))(carry.mpc, keys)
+    return a, carry.replace(mpc=mpc, prev_action=a)

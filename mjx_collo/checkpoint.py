@@ -1,0 +1,174 @@
+"""Orbax ``CheckpointManager`` wrapper for the seed-stacked train state.
+
+A checkpoint directory ``<run>/checkpoints/<env_step>/`` holds three items:
+
+* ``train``: the whole train state without the replay (params, optimizer states, RNG, counters);
+* ``replay``: the replay buffer (optional: ``run.save_replay``); resuming without it starts from an
+  empty buffer, evaluation never needs it;
+* ``meta``: the resolved config, the format version and the schedule counters (JSON).
+
+Orbax writes each step to a temporary directory and renames it when complete, so a crash mid-save
+leaves the previous checkpoint intact; non-finite states are refused before anything is written.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+
+from mjx_collo import config as config_lib
+from mjx_collo.config import Config, ConfigError
+
+FORMAT_VERSION = 1
+RESUMABLE = ("run.steps:",)  # config keys that may change between a run and its resume
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint cannot be used (missing, wrong config, wrong format)."""
+
+
+def all_finite(tree: Any) -> bool:
+    """True if every floating-point leaf of ``tree`` is finite (one device reduction)."""
+    leaves = [
+        x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)
+    ]
+    if not leaves:
+        return True
+    return bool(jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])))
+
+
+def _strip_empty(tree: Any) -> Any:
+    """Zero-size arrays (e.g. ``act`` of a model without actuator dynamics) -> None: Orbax cannot
+    store them, and they carry no information."""
+    return jax.tree.map(lambda x: None if int(np.prod(x.shape)) == 0 else x, tree)
+
+
+def _fill_empty(abstract: Any, restored: Any) -> Any:
+    """Put the zero-size arrays of ``abstract`` back into ``restored``."""
+
+    def fill(a, r):
+        if r is not None or a is None:
+            return r
+        sharding = getattr(a, "sharding", None)
+        return jnp.zeros(a.shape, a.dtype, device=sharding)
+
+    return jax.tree.map(fill, abstract, restored, is_leaf=lambda x: x is None)
+
+
+def _step_dir(path: Path) -> tuple[Path, int | None]:
+    """``<run>`` or ``<run>/checkpoints`` or ``<run>/checkpoints/<step>`` -> (manager dir, step)."""
+    path = Path(path)
+    if path.name.isdigit() and (path / "meta").exists():
+        return path.parent, int(path.name)
+    if (path / "checkpoints").is_dir():
+        return path / "checkpoints", None
+    return path, None
+
+
+class Checkpointer:
+    def __init__(self, directory: str | Path, keep: int = 3, read_only: bool = False):
+        self.directory, self.pinned_step = _step_dir(Path(directory).resolve())
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=keep,
+            create=not read_only,
+            read_only=read_only,
+            enable_async_checkpointing=True,
+        )
+        self.manager = ocp.CheckpointManager(self.directory, options=options)
+
+    # ---- saving ------------------------------------------------------------------------------
+
+    def save(self, step: int, train: Any, replay: Any | None, cfg: Config, meta: dict) -> bool:
+        """Save (asynchronously) unless the state holds NaN/inf. Returns whether it saved."""
+        if not all_finite(train):
+            return False
+        items = {
+            "train": ocp.args.StandardSave(_strip_empty(train)),
+            "meta": ocp.args.JsonSave(
+                {
+                    "format_version": FORMAT_VERSION,
+                    "config": config_lib.to_dict(cfg),
+                    "has_replay": replay is not None,
+                    **meta,
+                }
+            ),
+        }
+        if replay is not None:
+            items["replay"] = ocp.args.StandardSave(_strip_empty(replay))
+        self.manager.save(step, args=ocp.args.Composite(**items), force=True)
+        return True
+
+    def wait(self) -> None:
+        self.manager.wait_until_finished()
+
+    def close(self) -> None:
+        self.manager.wait_until_finished()
+        self.manager.close()
+
+    # ---- restoring ---------------------------------------------------------------------------
+
+    def latest_step(self) -> int | None:
+        if self.pinned_step is not None:
+            return self.pinned_step
+        return self.manager.latest_step()
+
+    def meta(self, step: int | None = None) -> dict:
+        step = self._resolve(step)
+        out = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
+        meta = dict(out["meta"])
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise CheckpointError(
+                f"checkpoint {self.directory / str(step)} has format version "
+                f"{meta.get('format_version')}, this code reads {FORMAT_VERSION}"
+            )
+        return meta
+
+    def config(self, step: int | None = None) -> Config:
+        tree = self.meta(step)["config"]
+        try:
+            return config_lib.build(tree)
+        except ConfigError as e:
+            raise CheckpointError(f"checkpoint config no longer validates: {e}") from None
+
+    def check_config(self, cfg: Config, step: int | None = None) -> None:
+        """Raise :class:`CheckpointError` naming what differs if ``cfg`` is not the saved one."""
+        saved = self.config(step)
+        # How far to train is not part of the run's identity: extending a run is a resume.
+        diffs = [d for d in config_lib.diff(saved, cfg) if not d.startswith(RESUMABLE)]
+        if diffs:
+            shown = "; ".join(diffs[:8]) + (" ..." if len(diffs) > 8 else "")
+            raise CheckpointError(
+                f"checkpoint in {self.directory} was written with a different config "
+                f"(saved -> requested): {shown}. Use a new RUN directory, or the same settings."
+            )
+
+    def restore(
+        self, abstract_train: Any, abstract_replay: Any | None = None, step: int | None = None
+    ) -> tuple[Any, Any | None, dict]:
+        """Restore into the given abstract (``jax.eval_shape``) trees; replay only if asked and
+        saved. Returns (train, replay or None, meta)."""
+        step = self._resolve(step)
+        meta = self.meta(step)
+        items = {"train": ocp.args.StandardRestore(_strip_empty(abstract_train))}
+        if abstract_replay is not None and meta.get("has_replay"):
+            items["replay"] = ocp.args.StandardRestore(_strip_empty(abstract_replay))
+        out = self.manager.restore(step, args=ocp.args.Composite(**items))
+        train = _fill_empty(abstract_train, out["train"])
+        replay = _fill_empty(abstract_replay, out["replay"]) if "replay" in items else None
+        return train, replay, meta
+
+    def _resolve(self, step: int | None) -> int:
+        step = step if step is not None else self.latest_step()
+        if step is None:
+            raise CheckpointError(f"no checkpoint found in {self.directory}")
+        return int(step)
+
+
+def host_tree(tree: Any) -> Any:
+    """Device arrays -> numpy (for JSON/metrics)."""
+    return jax.tree.map(np.asarray, jax.device_get(tree))

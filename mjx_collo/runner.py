@@ -1,0 +1,245 @@
+"""Host side of a training run: build or resume, AOT-compile, loop over chunks, evaluate,
+checkpoint, log. ``train.py`` is the CLI around :func:`run`.
+
+Resuming: running again on a run directory that holds checkpoints restores the latest one (state,
+replay, schedule) and continues exactly as if never interrupted; a different config is refused
+with a message naming the differences.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_collo import checkpoint as ckpt_lib
+from mjx_collo import config as config_lib
+from mjx_collo import metrics as metrics_lib
+from mjx_collo import replay as replay_lib
+from mjx_collo import trainer as trainer_lib
+from mjx_collo.config import Config
+
+
+class TrainingDiverged(RuntimeError):
+    """Persistent non-finite updates: the run stopped; the last good checkpoint is intact."""
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    env_steps: int
+    eval_returns: list[tuple[int, np.ndarray]] = field(default_factory=list)
+    compile_s: float = 0.0
+    first_update_s: float | None = None
+    stopped: str = "completed"
+
+
+def _labels_file(run_dir: Path, labels: list[dict]) -> None:
+    (run_dir / "seeds.json").write_text(json.dumps(labels, indent=1))
+
+
+class Run:
+    """One (possibly resumed) run of ``cfg`` with ``num_seeds`` x sweep grid vmapped."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        env: Any,
+        run_dir: str | Path,
+        num_seeds: int = 1,
+        sweep: dict[str, list[float]] | None = None,
+        progress: bool = True,
+        log=print,
+    ):
+        self.cfg, self.env, self.log = cfg, env, log
+        self.dir = Path(run_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.num_runs, self.hyper, self.labels = trainer_lib.sweep_grid(sweep or {}, num_seeds)
+        self.trainer = trainer_lib.make_train(cfg, env)
+        self.sharding = trainer_lib.mesh_sharding(self.num_runs)
+        self.init_fn, self.chunk_fn, self.eval_fn = trainer_lib.batched(self.trainer, self.sharding)
+        self.ckpt = ckpt_lib.Checkpointer(self.dir / "checkpoints", keep=cfg.run.keep_checkpoints)
+        self.keys = trainer_lib.seed_keys(cfg, self.num_runs)
+        self.progress = progress
+        self._stop_signal: str | None = None
+
+    # ---- state -----------------------------------------------------------------------------
+
+    def _abstract(self):
+        return jax.eval_shape(self.init_fn, self.keys, self.hyper)
+
+    def start(self) -> tuple[trainer_lib.TrainState, int]:
+        """Fresh state, or the latest checkpoint's. Returns (state, iteration)."""
+        latest = self.ckpt.latest_step()
+        if latest is None:
+            config_lib.dump_yaml(self.cfg, self.dir / "config.yaml")
+            _labels_file(self.dir, self.labels)
+            t = time.perf_counter()
+            state = self.init_fn(self.keys, self.hyper)
+            jax.block_until_ready(state)
+            self.log(f"initialised {self.num_runs} run(s) in {time.perf_counter() - t:.1f}s")
+            return state, 0
+        self.ckpt.check_config(self.cfg)
+        meta = self.ckpt.meta()
+        if meta.get("num_runs") != self.num_runs or meta.get("labels") != self.labels:
+            raise ckpt_lib.CheckpointError(
+                f"checkpoint in {self.dir} holds {meta.get('num_runs')} seed/sweep runs "
+                f"{meta.get('labels')}, this command asks for {self.num_runs} {self.labels}"
+            )
+        abstract = self._abstract()
+        if self.sharding is not None:
+            abstract = jax.tree.map(
+                lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding), abstract
+            )
+        train_abs = abstract.replace(replay=None)
+        train, replay, meta = self.ckpt.restore(train_abs, abstract.replay)
+        if replay is None:
+            self.log(
+                "checkpoint has no replay (run.save_replay=false): resuming with an empty buffer"
+            )
+            replay = jax.jit(lambda s: s.replay)(self.init_fn(self.keys, self.hyper))
+        state = train.replace(replay=replay)
+        self.log(
+            f"resumed from {self.dir / 'checkpoints' / str(latest)} (env step {meta['env_steps']})"
+        )
+        return state, int(meta["iteration"])
+
+    def save(self, state, iteration: int, env_steps: int, wait: bool = False) -> bool:
+        replay = state.replay if self.cfg.run.save_replay else None
+        ok = self.ckpt.save(
+            env_steps,
+            state.replace(replay=None),
+            replay,
+            self.cfg,
+            {
+                "iteration": iteration,
+                "env_steps": env_steps,
+                "num_runs": self.num_runs,
+                "labels": self.labels,
+            },
+        )
+        if wait:
+            self.ckpt.wait()
+        if not ok:
+            self.log(f"checkpoint at env step {env_steps} NOT written: the state holds NaN/inf")
+        return ok
+
+    # ---- compile ---------------------------------------------------------------------------
+
+    def compile(self, state, iteration: int):
+        t = time.perf_counter()
+        lowered = self.chunk_fn.lower(state, jnp.int32(iteration))
+        compiled = lowered.compile()
+        secs = time.perf_counter() - t
+        cost = trainer_lib.cost_summary(compiled)
+        one = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), state.replay)
+        self.log(
+            f"compiled chunk ({self.trainer.iterations_per_chunk} iterations x "
+            f"{self.trainer.env_steps_per_iteration} env steps, {self.num_runs} run(s)) in "
+            f"{secs:.1f}s: {cost.get('gflops', float('nan')):.1f} GFLOP/chunk (XLA count, loop "
+            f"bodies once), temp memory {cost.get('temp_mib', float('nan')):.0f} MiB; "
+            f"{replay_lib.describe(one)} per run"
+        )
+        return compiled, secs
+
+    # ---- loop ------------------------------------------------------------------------------
+
+    def _handle(self, signum, _frame):
+        self._stop_signal = signal.Signals(signum).name
+        self.log(f"{self._stop_signal} received: saving a checkpoint after this chunk")
+
+    def evaluate(self, state, env_steps: int) -> np.ndarray:
+        key = jax.vmap(lambda k: jax.random.fold_in(k, env_steps))(self.keys)
+        out = jax.device_get(self.eval_fn(state, key))
+        returns = np.asarray(out["returns"])  # [S, episodes]
+        return returns
+
+    def run(self, total_env_steps: int | None = None, max_chunks: int | None = None) -> RunResult:
+        cfg = self.cfg
+        total = int(total_env_steps or cfg.run.steps)
+        chunk_steps = cfg.run.chunk_env_steps
+        total = -(-total // chunk_steps) * chunk_steps  # round up to whole chunks
+        launch = time.perf_counter()
+        state, it = self.start()
+        per_iter = self.trainer.env_steps_per_iteration
+        env_steps = it * per_iter
+        result = RunResult(self.dir, env_steps)
+        compiled, result.compile_s = self.compile(state, it)
+        log = metrics_lib.RunLog(
+            self.dir, total, self.num_runs, start_step=env_steps, progress=self.progress
+        )
+        handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        for s in handlers:
+            try:
+                signal.signal(s, self._handle)
+            except ValueError:  # not the main thread
+                pass
+        chunks = 0
+        last_saved = env_steps if self.ckpt.latest_step() == env_steps else None
+        try:
+            while env_steps < total and self._stop_signal is None:
+                t = time.perf_counter()
+                state, stacked = compiled(state, jnp.int32(it))
+                stacked = jax.device_get(stacked)
+                it += self.trainer.iterations_per_chunk
+                env_steps = it * per_iter
+                dt = time.perf_counter() - t
+                chunks += 1
+                trained = np.isfinite(np.asarray(stacked.get("wm/loss/total", [np.nan]))).any()
+                if result.first_update_s is None and trained:
+                    result.first_update_s = time.perf_counter() - launch
+                summary = metrics_lib.summarize_chunk(stacked)
+                summary["perf/env_steps_per_s"] = np.full(self.num_runs, chunk_steps / dt)
+                log.write(env_steps, "train", summary)
+                log.progress(env_steps, {"sps": f"{chunk_steps / dt:.0f}"})
+                streak = np.asarray(jax.device_get(state.nonfinite_streak))
+                if (streak > cfg.run.max_nonfinite).any():
+                    bad = int(np.argmax(streak))
+                    raise TrainingDiverged(
+                        f"training diverged: run {bad} ({self.labels[bad]}) had {int(streak[bad])} "
+                        f"consecutive non-finite world-model updates by env step {env_steps}; "
+                        f"stopped without saving. Last good checkpoint: "
+                        f"{self.ckpt.latest_step()} in {self.dir / 'checkpoints'}. Try a lower "
+                        f"wm.optim.lr or wm.optim.clip."
+                    )
+                if env_steps % cfg.run.eval_every == 0 or env_steps >= total:
+                    returns = self.evaluate(state, env_steps)
+                    result.eval_returns.append((env_steps, returns))
+                    log.write(
+                        env_steps,
+                        "eval",
+                        {"eval/return": returns.mean(1), "eval/return_std": returns.std(1)},
+                    )
+                    log.progress(env_steps)
+                if env_steps % cfg.run.checkpoint_every == 0 or env_steps >= total:
+                    if self.save(state, it, env_steps):
+                        last_saved = env_steps
+                log.plot()
+                if max_chunks is not None and chunks >= max_chunks:
+                    result.stopped = "max_chunks"
+                    break
+            if self._stop_signal is not None:
+                result.stopped = self._stop_signal
+            if last_saved != env_steps:  # interrupted or stopped early: keep the work
+                self.save(state, it, env_steps, wait=True)
+        finally:
+            for s, h in handlers.items():
+                try:
+                    signal.signal(s, h)
+                except ValueError:
+                    pass
+            self.ckpt.wait()
+            log.close()
+        result.env_steps = env_steps
+        self.state = state
+        return result
+
+    def close(self) -> None:
+        self.ckpt.close()

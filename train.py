@@ -1,0 +1,123 @@
+"""Train an agent: ``make train ENV=cheetah [METHOD=] [SEEDS=] [STEPS=] [RUN=] [ARGS="a.b=c"]``.
+
+CLI glue only: parse -> build -> compile -> loop -> write (mjx_collo/runner.py does the work).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--env", default="cheetah", help="task name or alias (cheetah, reacher, ...)")
+    p.add_argument(
+        "--method",
+        default="collodreamer",
+        help="collodreamer | latco | dreamer | cem | mppi | mppi_value",
+    )
+    p.add_argument("--seeds", type=int, default=1, help="independent seeds, vmapped in one program")
+    p.add_argument("--steps", type=int, default=None, help="env steps (action repeat included)")
+    p.add_argument("--run", default=None, help="run directory (default runs/<task>-<method>-...)")
+    p.add_argument(
+        "--sweep",
+        default=None,
+        help='float hyperparameters swept in the same compile: "value.gamma=0.9,0.99"',
+    )
+    p.add_argument("--preset", action="append", default=[], help="extra overlay, e.g. debug")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    p.add_argument("overrides", nargs="*", help="dotted config overrides, e.g. wm.deter=300")
+    return p.parse_args(argv)
+
+
+def setup_jax() -> None:
+    """Persistent compilation cache: re-running, resuming or evaluating the same config skips
+    most of the XLA compile time."""
+    import jax
+
+    cache = Path(os.environ.get("MJX_COLLO_CACHE", Path.home() / ".cache" / "mjx_collo" / "xla"))
+    cache.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+
+
+def default_run_dir(
+    task: str, method: str, seeds: int, presets: list[str], sweep: str | None, overrides: list[str]
+) -> Path:
+    """Deterministic per command, so re-running the same command resumes it."""
+    import hashlib
+
+    parts = [task, method, f"s{seeds}"] + presets
+    extra = " ".join(sorted(overrides)) + (f" sweep={sweep}" if sweep else "")
+    if extra:
+        parts.append(hashlib.sha1(extra.encode()).hexdigest()[:8])
+    return Path("runs") / "-".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse(argv)
+    import envs
+    from mjx_collo import config, runner
+    from mjx_collo.checkpoint import CheckpointError
+
+    try:
+        task = envs.canonical(args.env)
+        overrides = list(args.overrides)
+        if args.steps is not None:
+            overrides.append(f"run.steps={args.steps}")
+        cfg = config.load(task=task, method=args.method, presets=args.preset, overrides=overrides)
+        sweep = config.parse_sweep(args.sweep, cfg) if args.sweep else {}
+        if args.seeds < 1:
+            raise config.ConfigError(f"--seeds must be >= 1, got {args.seeds}")
+    except (envs.UnknownTaskError, config.ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+    setup_jax()
+    run_dir = (
+        Path(args.run)
+        if args.run
+        else default_run_dir(task, args.method, args.seeds, args.preset, args.sweep, args.overrides)
+    )
+    print(
+        f"mjx_collo: {args.method} on {task}, {args.seeds} seed(s)"
+        + (f" x sweep {sweep}" if sweep else "")
+        + f", {cfg.run.steps} env steps -> {run_dir}"
+    )
+    env = envs.make(
+        task,
+        action_repeat=cfg.env.action_repeat,
+        episode_length=cfg.env.episode_env_steps,
+        normalize_actions=True,
+        physics=cfg.env.physics,
+    )
+    try:
+        r = runner.Run(
+            cfg, env, run_dir, num_seeds=args.seeds, sweep=sweep, progress=not args.no_progress
+        )
+        result = r.run()
+        r.close()
+    except (CheckpointError, config.ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except runner.TrainingDiverged as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+    if result.eval_returns:
+        step, returns = result.eval_returns[-1]
+        print(
+            f"eval return at {step} env steps: {returns.mean():.1f} ± {returns.mean(1).std():.1f}"
+            f" (mean ± std over {returns.shape[0]} run(s))"
+        )
+    print(
+        f"{result.stopped} at {result.env_steps} env steps; results in {run_dir} "
+        f"(metrics.jsonl, plots/, tb/, checkpoints/)"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
