@@ -18,6 +18,7 @@ from mjx_collo.planner import (
     mpc_init,
     mpc_reset,
     next_action,
+    plan_value_batch,
     replan,
     replan_value,
     shadow_batch,
@@ -36,7 +37,7 @@ def _jit_replan(planner):
 
 
 def _cfg(*overrides: str, method: str = "latco") -> config.Config:
-    base = ["planner.horizon=6", "planner.mpc_steps=4", "planner.iters=5", "planner.solver=cg"]
+    base = ["planner.horizon=6", "planner.mpc_steps=4", "planner.iters=5"]
     return config.load(method=method, overrides=base + list(overrides))
 
 
@@ -150,6 +151,12 @@ def test_shadow_batch_is_a_feasible_rollout():
     np.testing.assert_allclose(b["feat"][0, 0, :2], -1.0)
     np.testing.assert_allclose(b["feat"][0, 1, :2], z1, rtol=1e-6)
     np.testing.assert_allclose(b["reward"][0, 1], jnp.sum(z1), rtol=1e-6)
+    # plan_final: one sequence per env.
+    envs = plan_value_batch(
+        model, 0.0, jnp.stack([jnp.ones(2), -jnp.ones(2)]), jnp.stack([acts] * 2)
+    )
+    assert envs["feat"].shape == (2, 4, 4) and envs["is_first"].shape == (2, 4)
+    np.testing.assert_allclose(envs["feat"][0], b["feat"][0])
 
 
 def test_plan_inner_value_learning_shares_updates_across_envs():

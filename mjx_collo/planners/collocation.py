@@ -143,14 +143,14 @@ def optimize(
     lo, hi = pc.lam_clip
 
     def body(k, carry):
-        p, s, first, istate = carry
+        p, s, last_bad, istate = carry
         z, a, s, d = step(p.z, p.a, p.lam, p.nu, s)
         dv = duals.dyn_violation(d)
         av = duals.act_violation(p.a)
         lam = duals.update_multiplier(p.lam, dv, pc.dyn_eps, pc.lm_alpha, pc.lm_eta, lo, hi)
         nu = duals.update_multiplier(p.nu, av, pc.act_eps, pc.lm_alpha, pc.lm_eta, lo, hi)
         feasible = (jnp.max(dv) <= pc.dyn_eps) & (jnp.max(av) <= pc.act_eps)
-        first = jnp.where((first < 0) & feasible, k, first)
+        last_bad = jnp.where(feasible, last_bad, k)
         p = PlanState(z=z, a=a, lam=lam, nu=nu)
         if inner_fn is not None:
             istate = jax.lax.cond(
@@ -159,16 +159,17 @@ def optimize(
                 lambda st: st,
                 istate,
             )
-        return p, s, first, istate
+        return p, s, last_bad, istate
 
     init = (plan, solver_state, jnp.asarray(-1, jnp.int32), inner_state)
-    plan, _, first, inner_state = jax.lax.fori_loop(0, pc.iters, body, init, unroll=unroll)
+    plan, _, last_bad, inner_state = jax.lax.fori_loop(0, pc.iters, body, init, unroll=unroll)
     metrics = plan_metrics(prob, plan, pc.dyn_eps, pc.act_eps)
-    # Iterations to feasibility: index of the first feasible iterate (K when only the final plan
-    # is, K + 1 when none is).
-    last_ok = metrics["feasible"] > 0
-    first = jnp.where(first >= 0, first, jnp.where(last_ok, pc.iters, pc.iters + 1))
-    metrics["iters_to_feasible"] = first.astype(jnp.float32)
+    # Iterations to the violation threshold: steps after which every iterate (and the final plan)
+    # met it, i.e. 1 + the last infeasible iterate; 0 if all were feasible, K + 1 if the final plan
+    # is not. (A rollout-initialised plan starts feasible and usually leaves feasibility first.)
+    final_ok = metrics["feasible"] > 0
+    steps = jnp.where(final_ok, last_bad + 1, pc.iters + 1)
+    metrics["iters_to_feasible"] = steps.astype(jnp.float32)
     return plan, metrics, inner_state
 
 
