@@ -39,7 +39,7 @@ sweep: install
 	  $(if $(SWEEP),--sweep "$(SWEEP)") $(ARGS)
 
 eval: install
-	$(PY) -m mjx_collo.evaluate --ckpt $(CKPT) --episodes $(EPISODES) $(if $(filter 1,$(VIDEO)),--video) $(ARGS)
+	$(PY) evaluate.py --ckpt $(CKPT) --episodes $(EPISODES) $(if $(filter 1,$(VIDEO)),--video) $(ARGS)
 
 # The CI suite: everything not marked slow (< 15 min on 2 cores).
 test: install

@@ -38,6 +38,8 @@ def setup_jax() -> None:
     most of the XLA compile time."""
     import jax
 
+    if jax.config.jax_compilation_cache_dir:  # already configured (e.g. by the test suite)
+        return
     cache = Path(os.environ.get("MJX_COLLO_CACHE", Path.home() / ".cache" / "mjx_collo" / "xla"))
     cache.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(cache))

@@ -326,7 +326,7 @@ def initial_state(cfg: WorldModelConfig, batch: tuple[int, ...] = ()) -> RSSMSta
         stats = {"mean": jnp.zeros(batch + (cfg.stoch,)), "std": jnp.ones(batch + (cfg.stoch,))}
     else:
         shape = batch + (cfg.stoch, cfg.classes)
-        stats = {"logits": jnp.full(shape, -math.log(cfg.classes))}
+        stats = {"logits": jnp.full(shape, -math.log(cfg.classes), jnp.float32)}  # not weak-typed
     return RSSMState(
         deter=jnp.zeros(batch + (cfg.deter,)),
         stoch=jnp.zeros(batch + (stoch_size(cfg),)),

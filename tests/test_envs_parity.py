@@ -72,16 +72,20 @@ def _compile(fn, *args, options=None):
 
 @functools.cache
 def physics64(domain: str):
-    """float64 program: states -> (data after forward, data after one control step)."""
+    """Compiled float64 program for the domain: states -> (data after forward, data after one
+    control step), for batches of N_STATES."""
     with jax.enable_x64(True):
         env = envs.make(domain, physics="dmc")
+        m = env.mj_model
 
         def both(qpos, qvel, act, action):
             # physics never reads the reacher target (contacts are off): any value will do
             s0 = env.state_from_physics(qpos, qvel, act, **_dummy_task_state(env))
             return s0.pipeline_state, env.step(s0, action).pipeline_state
 
-        return env, both
+        shapes = [(N_STATES, m.nq), (N_STATES, m.nv), (N_STATES, m.na), (N_STATES, m.nu)]
+        args = [jax.ShapeDtypeStruct(s, jnp.float64) for s in shapes]
+        return _compile(jax.vmap(both), *args, options=FAST_COMPILE)
 
 
 def _dummy_task_state(env) -> dict:
@@ -98,11 +102,10 @@ def parity_data(task: str, dmc) -> dict:
         return _PARITY[task]
     r = dmc[("parity", task)].result()
     with jax.enable_x64(True):
-        dom_env, both = physics64(DOMAIN[task])
+        program = physics64(DOMAIN[task])
         env = envs.make(task, physics="dmc")
         st = r["states"]
-        args = (st["qpos"], st["qvel"], st["act"], r["actions"])
-        d0, d1 = _compile(jax.vmap(both), *args, options=FAST_COMPILE)(*args)
+        d0, d1 = program(st["qpos"], st["qvel"], st["act"], r["actions"])
         info = {"target_xy": jnp.asarray(st["target_xy"])} if "target_xy" in st else {}
 
         def obs_reward(d, info):

@@ -1,0 +1,129 @@
+"""Evaluate a checkpoint: ``make eval CKPT=<run dir or checkpoint step dir> [EPISODES=10] [VIDEO=1]``.
+
+Deterministic episodes (no exploration noise) per seed with the saved parameters — the replay is
+not loaded. Prints a table of mean ± std return, writes ``eval.json`` (and with ``--video`` a GIF of
+one episode per seed, rendered on the CPU) next to the checkpoints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def parse(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--ckpt", required=True, help="run directory or <run>/checkpoints/<step>")
+    p.add_argument("--episodes", type=int, default=10)
+    p.add_argument("--video", action="store_true", help="write a GIF of episode 0 of each seed")
+    p.add_argument("--size", type=int, default=128, help="video frame size in pixels")
+    p.add_argument("--out", default=None, help="output directory (default: the run directory)")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse(argv)
+    import jax
+    import numpy as np
+
+    import envs
+    from mjx_collo import checkpoint, config, trainer
+    from train import setup_jax
+
+    setup_jax()
+    try:
+        ckpt = checkpoint.Checkpointer(args.ckpt, read_only=True)
+        step = ckpt.latest_step()
+        if step is None:
+            raise checkpoint.CheckpointError(f"no checkpoint found under {args.ckpt}")
+        meta = ckpt.meta(step)
+        cfg = ckpt.config(step)
+    except (checkpoint.CheckpointError, FileNotFoundError, config.ConfigError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if args.episodes < 1:
+        print("error: --episodes must be >= 1", file=sys.stderr)
+        return 2
+    cfg_eval = cfg.model_copy(
+        update={"run": cfg.run.model_copy(update={"eval_episodes": args.episodes})}
+    )
+    env = envs.make(
+        cfg.env.task,
+        action_repeat=cfg.env.action_repeat,
+        episode_length=cfg.env.episode_env_steps,
+        normalize_actions=True,
+        physics=cfg.env.physics,
+    )
+    tr = trainer.make_train(cfg_eval, env)
+    labels = meta["labels"]
+    n = meta["num_runs"]
+    keys = trainer.seed_keys(cfg, n)
+    # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
+    hyper = {k: np.zeros(n, np.float32) for k in labels[0] if k != "seed"}
+    abstract = jax.eval_shape(jax.vmap(tr.init), keys, hyper).replace(replay=None)
+    state, _, _ = ckpt.restore(abstract, None, step)
+    t = time.perf_counter()
+    eval_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, step), 7))(keys)
+    out = jax.device_get(jax.jit(jax.vmap(tr.evaluate))(state, eval_keys))
+    secs = time.perf_counter() - t
+    returns = np.asarray(out["returns"])  # [S, episodes]
+    run_dir = ckpt.directory.parent
+    out_dir = Path(args.out) if args.out else run_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    print(
+        f"{cfg.method} on {cfg.env.task}, checkpoint at {step} env steps, "
+        f"{args.episodes} deterministic episode(s) per run ({secs:.0f}s incl. compile)"
+    )
+    print(f"{'run':<32s} {'mean':>8s} {'std':>8s} {'min':>8s} {'max':>8s}")
+    rows = []
+    for i, lab in enumerate(labels):
+        r = returns[i]
+        name = ", ".join(f"{k}={v}" for k, v in lab.items())
+        print(f"{name:<32s} {r.mean():8.1f} {r.std():8.1f} {r.min():8.1f} {r.max():8.1f}")
+        rows.append(
+            {"run": lab, "returns": r.tolist(), "mean": float(r.mean()), "std": float(r.std())}
+        )
+    means = returns.mean(1)
+    print(f"{'all runs':<32s} {means.mean():8.1f} {means.std():8.1f}")
+    result = {
+        "task": cfg.env.task,
+        "method": cfg.method,
+        "env_steps": step,
+        "episodes": args.episodes,
+        "runs": rows,
+        "mean_over_runs": float(means.mean()),
+        "std_over_runs": float(means.std()),
+    }
+    if args.video:
+        import imageio
+
+        from envs import render
+
+        videos = []
+        for i in range(n):
+            target = out.get("target_xy")
+            frames = render.render_episode(
+                env.unwrapped,
+                np.asarray(out["qpos"][i]),
+                None if target is None else np.asarray(target[i]),
+                args.size,
+                args.size,
+            )
+            path = out_dir / f"eval_{step}_run{i}.gif"
+            imageio.mimsave(
+                path, list(frames), duration=1000 * env.unwrapped.dt * cfg.env.action_repeat, loop=0
+            )
+            videos.append(str(path))
+            print(f"video: {path}")
+        result["videos"] = videos
+    (out_dir / "eval.json").write_text(json.dumps(result, indent=1))
+    print(f"wrote {out_dir / 'eval.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
