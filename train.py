@@ -29,6 +29,14 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--preset", action="append", default=[], help="extra overlay, e.g. debug")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (log lines only)")
+    p.add_argument(
+        "--distributed",
+        action="store_true",
+        help="join a multi-process run via jax.distributed (see --coordinator)",
+    )
+    p.add_argument("--coordinator", default=None, help="host:port of process 0 (distributed)")
+    p.add_argument("--num-processes", type=int, default=None)
+    p.add_argument("--process-id", type=int, default=None)
     p.add_argument("overrides", nargs="*", help="dotted config overrides, e.g. wm.deter=300")
     return p.parse_args(argv)
 

@@ -76,6 +76,8 @@ class RunLog:
 
     def write(self, step: int, kind: str, per_seed: Mapping[str, np.ndarray]) -> None:
         """Log ``{metric: [num_seeds]}`` at env step ``step`` (NaN entries are skipped)."""
+        if not self.enabled:
+            return
         writers = self._writers()
         for i in range(self.num_seeds):
             row = {"step": int(step), "seed": i, "kind": kind}
@@ -107,6 +109,8 @@ class RunLog:
 
     def plot(self) -> list[Path]:
         """Redraw the PNG plots from all rows so far."""
+        if not self.enabled:
+            return []
         import matplotlib
 
         matplotlib.use("Agg")
@@ -149,6 +153,8 @@ class RunLog:
 
     def close(self) -> None:
         self.bar.close()
+        if not self.enabled:
+            return
         self.file.close()
         if self.tb is not None:
             for w in self.tb:

@@ -27,6 +27,21 @@ from mjx_collo import trainer as trainer_lib
 from mjx_collo.config import Config
 
 
+def is_main_process() -> bool:
+    return jax.process_index() == 0
+
+
+def host(tree: Any) -> Any:
+    """Device values -> numpy on this host (all shards: gathered across processes if needed)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        return jax.tree.map(
+            lambda x: np.asarray(multihost_utils.process_allgather(x, tiled=True)), tree
+        )
+    return jax.device_get(tree)
+
+
 class TrainingDiverged(RuntimeError):
     """Persistent non-finite updates: the run stopped; the last good checkpoint is intact."""
 
@@ -66,9 +81,30 @@ class Run:
         self.sharding = trainer_lib.mesh_sharding(self.num_runs)
         self.init_fn, self.chunk_fn, self.eval_fn = trainer_lib.batched(self.trainer, self.sharding)
         self.ckpt = ckpt_lib.Checkpointer(self.dir / "checkpoints", keep=cfg.run.keep_checkpoints)
-        self.keys = trainer_lib.seed_keys(cfg, self.num_runs)
-        self.progress = progress
+        self.keys = self._put(trainer_lib.seed_keys(cfg, self.num_runs))
+        self.hyper = self._put(self.hyper)
+        self.main = is_main_process()
+        self.progress = progress and self.main
         self._stop_signal: str | None = None
+
+    # ---- placement ---------------------------------------------------------------------------
+
+    def _put(self, tree: Any) -> Any:
+        """Host data with a leading seed axis -> (global) arrays sharded like the seed axis."""
+        if self.sharding is None:
+            return tree
+        return jax.tree.map(
+            lambda x: jax.make_array_from_callback(
+                np.shape(x), self.sharding, lambda idx, x=np.asarray(x): x[idx]
+            ),
+            tree,
+        )
+
+    def _it(self, it: int) -> Any:
+        if self.sharding is None:
+            return jnp.int32(it)
+        rep = self.sharding.with_spec(jax.sharding.PartitionSpec())
+        return jax.make_array_from_callback((), rep, lambda idx: np.int32(it))
 
     # ---- state -----------------------------------------------------------------------------
 
@@ -79,8 +115,9 @@ class Run:
         """Fresh state, or the latest checkpoint's. Returns (state, iteration)."""
         latest = self.ckpt.latest_step()
         if latest is None:
-            config_lib.dump_yaml(self.cfg, self.dir / "config.yaml")
-            _labels_file(self.dir, self.labels)
+            if self.main:
+                config_lib.dump_yaml(self.cfg, self.dir / "config.yaml")
+                _labels_file(self.dir, self.labels)
             t = time.perf_counter()
             state = self.init_fn(self.keys, self.hyper)
             jax.block_until_ready(state)
@@ -135,7 +172,7 @@ class Run:
 
     def compile(self, state, iteration: int):
         t = time.perf_counter()
-        lowered = self.chunk_fn.lower(state, jnp.int32(iteration))
+        lowered = self.chunk_fn.lower(state, self._it(iteration))
         compiled = lowered.compile()
         secs = time.perf_counter() - t
         cost = trainer_lib.cost_summary(compiled)
@@ -157,7 +194,7 @@ class Run:
 
     def evaluate(self, state, env_steps: int) -> np.ndarray:
         key = jax.vmap(lambda k: jax.random.fold_in(k, env_steps))(self.keys)
-        out = jax.device_get(self.eval_fn(state, key))
+        out = host(self.eval_fn(state, key))
         returns = np.asarray(out["returns"])  # [S, episodes]
         return returns
 
@@ -186,8 +223,8 @@ class Run:
         try:
             while env_steps < total and self._stop_signal is None:
                 t = time.perf_counter()
-                state, stacked = compiled(state, jnp.int32(it))
-                stacked = jax.device_get(stacked)
+                state, stacked = compiled(state, self._it(it))
+                stacked = host(stacked)
                 it += self.trainer.iterations_per_chunk
                 env_steps = it * per_iter
                 dt = time.perf_counter() - t
@@ -199,7 +236,7 @@ class Run:
                 summary["perf/env_steps_per_s"] = np.full(self.num_runs, chunk_steps / dt)
                 log.write(env_steps, "train", summary)
                 log.progress(env_steps, {"sps": f"{chunk_steps / dt:.0f}"})
-                streak = np.asarray(jax.device_get(state.nonfinite_streak))
+                streak = np.asarray(host(state.nonfinite_streak))
                 if (streak > cfg.run.max_nonfinite).any():
                     bad = int(np.argmax(streak))
                     raise TrainingDiverged(
