@@ -209,8 +209,6 @@ class Config(Section):
     version: int
 
 
-
-
 # --------------------------------------------------------------------------------------------
 # Loading: defaults.yaml -> task overlay -> method overlay -> presets -> dotted overrides
 # --------------------------------------------------------------------------------------------
@@ -240,9 +238,9 @@ def _valid_keys(model: type[BaseModel], path: Sequence[str]) -> list[str]:
     cls: Any = model
     for p in path:
         field = cls.model_fields.get(p)
-        if field is None or not (isinstance(field.annotation, type) and issubclass(
-            field.annotation, BaseModel
-        )):
+        if field is None or not (
+            isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel)
+        ):
             return []
         cls = field.annotation
     return sorted(cls.model_fields)

@@ -40,7 +40,22 @@ class RunLog:
         num_seeds: int,
         start_step: int = 0,
         progress: bool = True,
+        enabled: bool = True,
     ):
+        """``enabled=False`` (non-main processes of a multi-process run) writes nothing."""
+        self.enabled = enabled
+        self.latest: dict[str, float] = {}
+        self.bar = tqdm(
+            total=total_steps,
+            initial=start_step,
+            unit="step",
+            unit_scale=True,
+            dynamic_ncols=True,
+            disable=not (progress and enabled),
+            smoothing=0.3,
+        )
+        if not enabled:
+            return
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         (self.dir / "plots").mkdir(exist_ok=True)
@@ -56,16 +71,6 @@ class RunLog:
         self.num_seeds = num_seeds
         self.tb = None
         self._tb_dir = self.dir / "tb"
-        self.bar = tqdm(
-            total=total_steps,
-            initial=start_step,
-            unit="step",
-            unit_scale=True,
-            dynamic_ncols=True,
-            disable=not progress,
-            smoothing=0.3,
-        )
-        self.latest: dict[str, float] = {}
 
     def _writers(self):
         if self.tb is None:
