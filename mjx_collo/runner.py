@@ -52,7 +52,12 @@ class RunResult:
     env_steps: int
     eval_returns: list[tuple[int, np.ndarray]] = field(default_factory=list)
     compile_s: float = 0.0
-    first_update_s: float | None = None
+    first_update_s: float | None = (
+        None  # from run() start to the end of the first chunk that trained
+    )
+    init_s: float = 0.0  # building (or restoring) the state, its compile included
+    chunk_s: list[float] = field(default_factory=list)  # wall time of each chunk call
+    eval_s: list[float] = field(default_factory=list)  # wall time of each evaluation
     stopped: str = "completed"
 
 
@@ -86,6 +91,7 @@ class Run:
         self.main = is_main_process()
         self.progress = progress and self.main
         self._stop_signal: str | None = None
+        self._eval_compiled = None
 
     # ---- placement ---------------------------------------------------------------------------
 
@@ -170,9 +176,19 @@ class Run:
 
     # ---- compile ---------------------------------------------------------------------------
 
+    def lower(self, state, iteration: int):
+        """Lower the chunk from shapes only: a fresh state and one restored by Orbax (whose arrays
+        carry explicit shardings) then give the same program, so a resumed run hits the
+        persistent compilation cache instead of compiling again."""
+
+        def spec(x):
+            return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding)
+
+        return self.chunk_fn.lower(jax.tree.map(spec, state), self._it(iteration))
+
     def compile(self, state, iteration: int):
         t = time.perf_counter()
-        lowered = self.chunk_fn.lower(state, self._it(iteration))
+        lowered = self.lower(state, iteration)
         compiled = lowered.compile()
         secs = time.perf_counter() - t
         cost = trainer_lib.cost_summary(compiled)
@@ -194,7 +210,12 @@ class Run:
 
     def evaluate(self, state, env_steps: int) -> np.ndarray:
         key = jax.vmap(lambda k: jax.random.fold_in(k, env_steps))(self.keys)
-        out = host(self.eval_fn(state, key))
+        if self._eval_compiled is None:  # AOT from shapes, like the chunk (see lower())
+            spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding)  # noqa: E731
+            self._eval_compiled = self.eval_fn.lower(
+                jax.tree.map(spec, state), jax.tree.map(spec, key)
+            ).compile()
+        out = host(self._eval_compiled(state, key))
         returns = np.asarray(out["returns"])  # [S, episodes]
         return returns
 
@@ -207,7 +228,7 @@ class Run:
         state, it = self.start()
         per_iter = self.trainer.env_steps_per_iteration
         env_steps = it * per_iter
-        result = RunResult(self.dir, env_steps)
+        result = RunResult(self.dir, env_steps, init_s=time.perf_counter() - launch)
         compiled, result.compile_s = self.compile(state, it)
         log = metrics_lib.RunLog(
             self.dir, total, self.num_runs, start_step=env_steps, progress=self.progress
@@ -228,6 +249,7 @@ class Run:
                 it += self.trainer.iterations_per_chunk
                 env_steps = it * per_iter
                 dt = time.perf_counter() - t
+                result.chunk_s.append(dt)
                 chunks += 1
                 trained = np.isfinite(np.asarray(stacked.get("wm/loss/total", [np.nan]))).any()
                 if result.first_update_s is None and trained:
@@ -247,7 +269,9 @@ class Run:
                         f"wm.optim.lr or wm.optim.clip."
                     )
                 if env_steps % cfg.run.eval_every == 0 or env_steps >= total:
+                    t = time.perf_counter()
                     returns = self.evaluate(state, env_steps)
+                    result.eval_s.append(time.perf_counter() - t)
                     result.eval_returns.append((env_steps, returns))
                     log.write(
                         env_steps,
