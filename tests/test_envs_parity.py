@@ -43,6 +43,14 @@ DOMAIN = {
     "quadruped_run": "quadruped_walk",
     "walker_walk": "walker_walk",
 }
+
+
+# make test runs on 2 xdist workers (--dist loadgroup): the tests of one domain share its compiled
+# programs (module-level caches), so they stay on one worker.
+def _by_domain(tasks):
+    return [pytest.param(t, marks=pytest.mark.xdist_group(DOMAIN[t])) for t in tasks]
+
+
 N_STATES = 102
 EPISODE_BATCH = 8  # envs per rollout call (the smoke test's "8 envs vmapped for a full episode")
 EPISODE_CALLS = 8  # 64 MJX episodes per task
@@ -51,15 +59,30 @@ N_DMC_RESETS = 300
 FAST_COMPILE = {"xla_backend_optimization_level": 0}  # tiny workloads: compile time dominates
 
 
+class _Jobs(dict):
+    """dm_control reference computations as futures of the background process. Parity and reset
+    references are submitted at once (every CI run needs them); the costly random-policy returns
+    only when the slow test asks for them."""
+
+    def __init__(self, pool):
+        super().__init__()
+        self.pool = pool
+
+    def __missing__(self, key):
+        kind, task = key
+        if kind != "returns":
+            raise KeyError(key)
+        self[key] = self.pool.submit(ref.episode_returns, task, N_DMC_EPISODES, 7)
+        return self[key]
+
+
 @pytest.fixture(scope="module")
 def dmc(dmc_pool):
-    """Futures for every dm_control reference computation, submitted at once so they run in the
-    background process while this one compiles MJX programs."""
-    jobs = {}
+    """Futures for the dm_control reference computations, submitted before the MJX compiles so
+    they run in the background process meanwhile."""
+    jobs = _Jobs(dmc_pool)
     for task in TASKS:
         jobs[("parity", task)] = dmc_pool.submit(ref.parity_reference, task, N_STATES)
-    for task in TASKS:
-        jobs[("returns", task)] = dmc_pool.submit(ref.episode_returns, task, N_DMC_EPISODES, 7)
     for task in ("reacher_easy", "reacher_hard", "quadruped_walk"):
         jobs[("resets", task)] = dmc_pool.submit(ref.reset_statistics, task, N_DMC_RESETS, 3)
     return jobs
@@ -140,7 +163,7 @@ def test_variants_share_physics():
         assert isinstance(ma, mujoco.MjModel)
 
 
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", _by_domain(TASKS))
 def test_observation_and_reward_match_dm_control(task, dmc):
     d = parity_data(task, dmc)
     ref_o0, ref_r0, _, _ = d["ref"]
@@ -152,7 +175,7 @@ def test_observation_and_reward_match_dm_control(task, dmc):
     assert np.any(ref_r0 > 0), "states should exercise the reward"
 
 
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", _by_domain(TASKS))
 def test_one_control_step_matches_dm_control(task, dmc):
     d = parity_data(task, dmc)
     _, _, ref_o1, ref_r1 = d["ref"]
@@ -161,7 +184,7 @@ def test_one_control_step_matches_dm_control(task, dmc):
     np.testing.assert_allclose(mjx_r1, ref_r1, atol=1e-3)
 
 
-@pytest.mark.parametrize("task", ["cheetah_run", "quadruped_walk"])
+@pytest.mark.parametrize("task", _by_domain(["cheetah_run", "quadruped_walk"]))
 def test_float32_observation_round_off_is_bounded(task, dmc):
     """float32 MJX (what training uses): kinematic observations within 1e-4; quadruped's
     acceleration-stage sensors (accelerometer, arcsinh toe force/torque, from the float32 contact
@@ -217,7 +240,7 @@ def domain_rollouts(domain: str):
     return env, outs
 
 
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", _by_domain(TASKS))
 def test_smoke_full_episode_vmapped(task):
     env, outs = domain_rollouts(DOMAIN[task])
     out = outs[0]
@@ -238,7 +261,7 @@ def _within_two_se(a: np.ndarray, b: np.ndarray) -> tuple[bool, str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", _by_domain(TASKS))
 def test_random_policy_return_matches_dm_control(task, dmc):
     _, outs = domain_rollouts(DOMAIN[task])
     ours = np.concatenate([o["returns"][task] for o in outs]).astype(np.float64)
@@ -248,6 +271,7 @@ def test_random_policy_return_matches_dm_control(task, dmc):
     assert ok, msg
 
 
+@pytest.mark.xdist_group("reacher_easy")
 def test_reacher_reset_distribution(dmc):
     env, outs = domain_rollouts("reacher_easy")
     xy = np.concatenate([o["info0"]["target_xy"] for o in outs])
@@ -265,6 +289,7 @@ def test_reacher_reset_distribution(dmc):
         )
 
 
+@pytest.mark.xdist_group("quadruped_walk")
 def test_quadruped_reset_distribution(dmc):
     env, outs = domain_rollouts("quadruped_walk")
     upright = np.concatenate([o["obs0"][:, 47] for o in outs])
