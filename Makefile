@@ -43,11 +43,11 @@ eval: install
 
 # The CI suite: everything not marked slow (< 15 min on 2 cores).
 test: install
-	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadgroup $(PYTEST_ARGS)
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
 # Everything, including the statistical env-parity, learning and multi-process tests.
 test-all: install
-	$(PY) -m pytest -q -n 2 --dist loadgroup $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: install
 	$(PY) -m ruff check .

@@ -30,16 +30,3 @@ def dmc_pool():
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
         yield pool
-
-
-# The two costliest xdist groups (each several minutes of compiles) are scheduled first, one per
-# worker, so that they do not end up as the tail of the run.
-_FIRST = ("trainer", "quadruped_walk")
-
-
-def pytest_collection_modifyitems(config, items):
-    def rank(item):
-        marks = [m.args[0] for m in item.iter_markers("xdist_group") if m.args]
-        return _FIRST.index(marks[0]) if marks and marks[0] in _FIRST else len(_FIRST)
-
-    items.sort(key=rank)  # stable: the collection order within each rank is kept

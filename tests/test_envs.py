@@ -12,6 +12,9 @@ import pytest
 import envs
 from envs.rewards import tolerance
 
+# Semantics tests of tiny programs: XLA's backend optimisation only costs compile time here.
+FAST = {"compiler_options": {"xla_backend_optimization_level": 0}}
+
 
 def test_registry_lists_the_paper_tasks_and_aliases():
     assert envs.registered() == [
@@ -83,7 +86,7 @@ def reacher_stack(action_repeat: int, episode_length: int, num_envs: int):
         num_envs=num_envs,
         auto_reset=True,
     )
-    return env, jax.jit(env.reset), jax.jit(env.step)
+    return env, jax.jit(env.reset, **FAST), jax.jit(env.step, **FAST)
 
 
 def test_action_repeat_sums_rewards_and_counts_env_steps():
@@ -92,7 +95,7 @@ def test_action_repeat_sums_rewards_and_counts_env_steps():
     key = jax.random.PRNGKey(0)
     a = jnp.array([0.7, -0.4])
 
-    @jax.jit
+    @functools.partial(jax.jit, **FAST)
     def run(key):
         s = bare.reset(key)
         total = 0.0

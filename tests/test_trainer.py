@@ -20,7 +20,6 @@ import train as train_cli
 from mjx_collo import config, runner, trainer
 
 TASK = "reacher_easy"
-pytestmark = pytest.mark.xdist_group("trainer")  # one worker: the module fixture is the cost
 
 
 def debug_cfg(method: str = "collodreamer", overrides=()) -> config.Config:
