@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import shutil
 from unittest import mock
 
 import jax
@@ -37,8 +38,8 @@ def make_env(cfg: config.Config):
 
 @functools.cache
 def uninterrupted_and_resumed(tmp_root: str):
-    """Run A: 2 chunks in one go. Run B: 1 chunk, stop (checkpoint), new process-like Run object
-    resumes from disk for the 2nd chunk."""
+    """Run A: 2 chunks in one go, checkpointing after each. Run B resumes from A's first
+    checkpoint and runs the 2nd chunk."""
     cfg = debug_cfg()
     env = make_env(cfg)
     total = 2 * cfg.run.chunk_env_steps
@@ -63,14 +64,15 @@ def uninterrupted_and_resumed(tmp_root: str):
     state_a = jax.device_get(run_a.state)
     run_a.close()
 
+    # Run B: a new Run object (as after a restart) on a copy of A's directory that holds only the
+    # checkpoint A wrote after its first chunk, as if A had been killed right after writing it.
+    shutil.copytree(f"{tmp_root}/a", f"{tmp_root}/b")
+    shutil.rmtree(f"{tmp_root}/b/checkpoints/{total}")
     run_b = runner.Run(cfg, env, f"{tmp_root}/b", num_seeds=2, progress=False, log=lambda *_: None)
-    res_b1 = run_b.run(total, max_chunks=1)
+    res_b = run_b.run(total)
+    state_b = jax.device_get(run_b.state)
     run_b.close()
-    run_b2 = runner.Run(cfg, env, f"{tmp_root}/b", num_seeds=2, progress=False, log=lambda *_: None)
-    res_b2 = run_b2.run(total)
-    state_b = jax.device_get(run_b2.state)
-    run_b2.close()
-    return cfg, (res_a, state_a), (res_b1, res_b2, state_b)
+    return cfg, (res_a, state_a), (res_b, state_b)
 
 
 @pytest.fixture(scope="module")
@@ -79,9 +81,11 @@ def runs(tmp_path_factory):
 
 
 def test_resumed_run_equals_uninterrupted_bit_for_bit(runs):
-    cfg, (res_a, state_a), (res_b1, res_b2, state_b) = runs
-    assert res_a.env_steps == res_b2.env_steps == 2 * cfg.run.chunk_env_steps
-    assert res_b1.env_steps == cfg.run.chunk_env_steps
+    cfg, (res_a, state_a), (res_b, state_b) = runs
+    assert res_a.env_steps == res_b.env_steps == 2 * cfg.run.chunk_env_steps
+    assert (
+        len(res_b.chunk_s) == 1
+    )  # B resumed at the first checkpoint and ran only the second chunk
     leaves_a, tree_a = jax.tree.flatten(state_a)
     leaves_b, tree_b = jax.tree.flatten(state_b)
     assert tree_a == tree_b
@@ -90,7 +94,7 @@ def test_resumed_run_equals_uninterrupted_bit_for_bit(runs):
     # training happened: world-model updates were applied and the replay holds data
     assert int(np.min(state_a.updates)) > 0
     # eval returns at the end agree too
-    np.testing.assert_array_equal(res_a.eval_returns[-1][1], res_b2.eval_returns[-1][1])
+    np.testing.assert_array_equal(res_a.eval_returns[-1][1], res_b.eval_returns[-1][1])
 
 
 def test_run_directory_has_config_metrics_plots_checkpoints(runs, tmp_path_factory):
