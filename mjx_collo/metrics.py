@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from collections import defaultdict
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,8 +43,11 @@ class RunLog:
         progress: bool = True,
         enabled: bool = True,
     ):
-        """``enabled=False`` (non-main processes of a multi-process run) writes nothing."""
+        """``enabled=False`` (non-main processes of a multi-process run) writes nothing;
+        ``progress=False`` prints one plain line per update instead of the bar (log files)."""
         self.enabled = enabled
+        self.plain = enabled and not progress
+        self.total, self._t0, self._step0 = total_steps, time.perf_counter(), start_step
         self.latest: dict[str, float] = {}
         self.bar = tqdm(
             total=total_steps,
@@ -108,6 +112,16 @@ class RunLog:
         post.update(extra or {})
         self.bar.set_postfix(post, refresh=False)
         self.bar.update(max(0, step - self.bar.n))
+        if self.plain:
+            elapsed = time.perf_counter() - self._t0
+            rate = (step - self._step0) / max(elapsed, 1e-9)
+            eta = (self.total - step) / rate if rate > 0 else float("nan")
+            fields = " ".join(f"{k} {v}" for k, v in post.items())
+            print(
+                f"step {step}/{self.total} {fields} elapsed {elapsed / 60:.1f}min "
+                f"eta {eta / 60:.1f}min",
+                flush=True,
+            )
 
     def message(self, text: str) -> None:
         self.bar.write(text)

@@ -231,7 +231,12 @@ class Run:
         result = RunResult(self.dir, env_steps, init_s=time.perf_counter() - launch)
         compiled, result.compile_s = self.compile(state, it)
         log = metrics_lib.RunLog(
-            self.dir, total, self.num_runs, start_step=env_steps, progress=self.progress
+            self.dir,
+            total,
+            self.num_runs,
+            start_step=env_steps,
+            progress=self.progress,
+            enabled=self.main,  # one writer in a multi-process run
         )
         handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         for s in handlers:
