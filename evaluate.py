@@ -29,8 +29,7 @@ def main(argv=None) -> int:
     import jax
     import numpy as np
 
-    import envs
-    from mjx_collo import checkpoint, config, trainer
+    from mjx_collo import checkpoint, config, runner, trainer
     from train import setup_jax
 
     setup_jax()
@@ -50,13 +49,7 @@ def main(argv=None) -> int:
     cfg_eval = cfg.model_copy(
         update={"run": cfg.run.model_copy(update={"eval_episodes": args.episodes})}
     )
-    env = envs.make(
-        cfg.env.task,
-        action_repeat=cfg.env.action_repeat,
-        episode_length=cfg.env.episode_env_steps,
-        normalize_actions=True,
-        physics=cfg.env.physics,
-    )
+    env = runner.make_env(cfg)
     tr = trainer.make_train(cfg_eval, env)
     labels = meta["labels"]
     n = meta["num_runs"]

@@ -97,13 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         + (f" x sweep {sweep}" if sweep else "")
         + f", {cfg.run.steps} env steps -> {run_dir}"
     )
-    env = envs.make(
-        task,
-        action_repeat=cfg.env.action_repeat,
-        episode_length=cfg.env.episode_env_steps,
-        normalize_actions=True,
-        physics=cfg.env.physics,
-    )
+    env = runner.make_env(cfg)
     try:
         r = runner.Run(
             cfg, env, run_dir, num_seeds=args.seeds, sweep=sweep, progress=not args.no_progress

@@ -49,13 +49,7 @@ def worker(spec: dict) -> dict:
     task = envs.canonical(spec["task"])
     overrides = [f"run.chunk_env_steps={STEADY_CHUNK}", f"run.steps={spec['total']}"]
     cfg = config.load(task=task, method=spec["method"], overrides=overrides)
-    env = envs.make(
-        task,
-        action_repeat=cfg.env.action_repeat,
-        episode_length=cfg.env.episode_env_steps,
-        normalize_actions=True,
-        physics=cfg.env.physics,
-    )
+    env = runner.make_env(cfg)
     logs: list[str] = []
     r = runner.Run(cfg, env, spec["run"], num_seeds=spec["seeds"], progress=False, log=logs.append)
     prefill_chunks = -(-cfg.run.prefill // STEADY_CHUNK)

@@ -27,6 +27,20 @@ from mjx_collo import trainer as trainer_lib
 from mjx_collo.config import Config
 
 
+def make_env(cfg: Config) -> Any:
+    """The task of ``cfg.env`` as the trainer drives it: action repeat, episode limit, actions in
+    [-1, 1], the configured physics options."""
+    import envs
+
+    return envs.make(
+        cfg.env.task,
+        action_repeat=cfg.env.action_repeat,
+        episode_length=cfg.env.episode_env_steps,
+        normalize_actions=True,
+        physics=cfg.env.physics,
+    )
+
+
 def is_main_process() -> bool:
     return jax.process_index() == 0
 

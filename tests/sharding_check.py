@@ -11,19 +11,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
-from mjx_collo import config, trainer
+from mjx_collo import config, runner, trainer
 
 
 def main() -> None:
     assert jax.device_count() == 2, f"expected 2 devices, got {jax.devices()}"
     cfg = config.load(task="reacher_easy", presets=["debug"])
-    env = envs.make(
-        "reacher_easy",
-        action_repeat=cfg.env.action_repeat,
-        episode_length=cfg.env.episode_env_steps,
-        normalize_actions=True,
-    )
+    env = runner.make_env(cfg)
     tr = trainer.make_train(cfg, env)
     keys = trainer.seed_keys(cfg, 2)
     out = {}

@@ -16,7 +16,6 @@ import jax
 import numpy as np
 import pytest
 
-import envs
 import train as train_cli
 from mjx_collo import config, runner, trainer
 
@@ -28,12 +27,7 @@ def debug_cfg(method: str = "collodreamer", overrides=()) -> config.Config:
 
 
 def make_env(cfg: config.Config):
-    return envs.make(
-        TASK,
-        action_repeat=cfg.env.action_repeat,
-        episode_length=cfg.env.episode_env_steps,
-        normalize_actions=True,
-    )
+    return runner.make_env(cfg)
 
 
 @functools.cache
