@@ -19,7 +19,7 @@ PYTEST_ARGS ?=
 # Quiet noisy deprecation chatter from dependencies.
 export PYTHONWARNINGS ?= ignore::DeprecationWarning
 
-.PHONY: install train sweep eval test test-all lint format bench bench-envs bench-model bench-planner clean
+.PHONY: install train sweep eval test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
 
 install: $(STAMP)
 
@@ -65,6 +65,10 @@ bench-model: install
 
 bench-planner: install
 	$(PY) benchmarks/bench_planner.py $(ARGS)
+
+# Planner defaults are judged here: a trained cheetah model (benchmarks/fixtures), real returns.
+bench-plan-quality: install
+	$(PY) benchmarks/bench_plan_quality.py $(ARGS)
 
 bench: install
 	$(PY) benchmarks/bench_train.py $(ARGS)

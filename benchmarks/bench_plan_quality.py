@@ -1,0 +1,237 @@
+"""Planner quality on a *trained* world model (``make bench-plan-quality``).
+
+Why this exists: ``bench_planner.py`` measures planners on random-weight models, and on those 30
+warm-started Adam steps looked best per CPU second. On a trained model that setting does not plan at
+all (cheetah eval return 3, random-policy level, against 92 for CEM on the same model), which is why
+ColloDreamer and LatCo did not learn. Every planner default must be checked here.
+
+Fixture: ``benchmarks/fixtures/cheetah_cem_20k.npz`` — the world-model parameters (default
+categorical RSSM) of ``train.py --env cheetah --method cem --steps 20000 run.eval_every=100000``
+(CEM reached a training return of 114 at 20k env steps) and the first 6000 replay rows of that run,
+written by ``benchmarks/dump_model.py``. CEM's model is used because CEM learns with it: a planner
+that fails on it fails at planning, not because the model is poor.
+
+Sections (both report every configuration side by side):
+  model  Cold planning calls from 16 contexts (posteriors filtered along the replay). Reports the
+         *shadow return*: the undiscounted model reward of the plan's clipped actions rolled out
+         through the model (what the plan really achieves; a collocation plan's own return can be
+         far higher when it violates the dynamics), the same for its initial actions, the plan's own
+         return, its dynamics violation, and ms per call per context (16 vmapped).
+  env    Real-env MPC returns: ``--episodes`` deterministic cheetah episodes (``trainer.evaluate``)
+         with the fixture's world model, exactly as a training run evaluates.
+
+Writes ``bench_results/plan_quality.json``. Run parts with ``--section model`` or
+``--only <name>``; ``--list`` prints the configurations.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_collo import agent as agent_lib
+from mjx_collo import config, runner
+from mjx_collo import trainer as trainer_lib
+from mjx_collo import world_model as wm_lib
+from mjx_collo.planners.protocol import rollout
+
+ROOT = Path(__file__).resolve().parent.parent
+FIXTURE = ROOT / "benchmarks" / "fixtures" / "cheetah_cem_20k.npz"
+OUT = ROOT / "bench_results" / "plan_quality.json"
+TASK = "cheetah_run"
+
+# name -> (method, overrides). The reward-only objective everywhere (the fixture has no trained
+# value), so ColloDreamer's collocation runs with value.bootstrap=false.
+NO_VALUE = ["value.bootstrap=false"]
+CONFIGS: dict[str, tuple[str, list[str]]] = {
+    "collocation default": ("collodreamer", NO_VALUE),
+    "adam K=30 lr=0.05 warm (old default)": (
+        "collodreamer",
+        NO_VALUE + ["planner.iters=30", "planner.adam_lr=0.05", "planner.warm_start=true"],
+    ),
+    "adam K=300 lr=0.01": (
+        "collodreamer",
+        NO_VALUE + ["planner.iters=300", "planner.adam_lr=0.01"],
+    ),
+    "adam K=200 lr=0.015 warm": ("collodreamer", NO_VALUE + ["planner.warm_start=true"]),
+    "gauss_newton K=30": (
+        "collodreamer",
+        NO_VALUE + ["planner.solver=gauss_newton", "planner.iters=30"],
+    ),
+    "cem 300x5": (
+        "cem",
+        ["planner.shooting.samples=300", "planner.shooting.elites=30", "planner.shooting.iters=5"],
+    ),
+}
+
+
+# One cold call per context cannot show a warm start: these only run in the env section.
+ENV_ONLY = {"adam K=200 lr=0.015 warm"}
+
+
+def load_cfg(method: str, overrides: list[str], episodes: int = 4) -> config.Config:
+    return config.load(
+        task=TASK, method=method, overrides=[f"run.eval_episodes={episodes}"] + overrides
+    )
+
+
+def load_params(cfg: config.Config, fixture: Path) -> tuple[dict, dict]:
+    """World-model params shaped like ``wm_lib.init(cfg.wm)`` and the replay slice."""
+    data = np.load(fixture)
+    abstract = jax.eval_shape(lambda: wm_lib.init(cfg.wm, jax.random.PRNGKey(0), (17,), 6))
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(abstract)
+    arrays = []
+    for path, leaf in leaves:
+        name = "wm" + jax.tree_util.keystr(path)
+        if name not in data:
+            raise SystemExit(f"fixture {fixture} has no {name}: it was made with other wm sizes")
+        arrays.append(jnp.asarray(data[name]).reshape(leaf.shape))
+    replay = {k[len("replay/") :]: data[k][:, 0] for k in data.files if k.startswith("replay/")}
+    return jax.tree_util.tree_unflatten(treedef, arrays), replay
+
+
+def contexts(cfg: config.Config, params, replay: dict, n: int = 16):
+    """Posterior states at ``n`` rows spread over the later part of the replay slice."""
+    rows = len(replay["obs"])
+
+    def filt(state, x):
+        o, a, f, k = x
+        post, _ = wm_lib.obs_step(cfg.wm, params, state, a[None], o[None], f[None], k)
+        return post, post
+
+    xs = tuple(jnp.asarray(replay[k]) for k in ("obs", "action", "is_first"))
+    keys = jax.random.split(jax.random.PRNGKey(3), rows)
+    _, posts = jax.jit(
+        lambda: jax.lax.scan(filt, wm_lib.initial_state(cfg.wm, (1,)), xs + (keys,))
+    )()
+    idx = np.linspace(rows // 3, rows - 1, n).astype(int)
+    return jax.tree.map(lambda x: x[idx, 0], posts)
+
+
+def model_section(name: str, method: str, overrides: list[str], params, ctxs) -> dict:
+    cfg = load_cfg(method, overrides)
+    agent = agent_lib.make_agent(cfg, 6)
+    planner, model = agent.planner, agent.model
+    pp = agent_lib.plan_params(params, None)
+
+    def shadow(actions, ctx):
+        zs = rollout(model, pp, ctx, jnp.clip(actions, -1.0, 1.0))
+        return jnp.sum(jax.vmap(model.reward, in_axes=(None, 0))(pp, zs))
+
+    def one(ctx, key):
+        k1, k2 = jax.random.split(key)
+        start = planner.init(pp, ctx, k1)
+        plan, m, _ = planner.optimize(pp, ctx, start, k2)
+        return shadow(planner.actions(plan), ctx), shadow(planner.actions(start), ctx), m
+
+    keys = jax.random.split(jax.random.PRNGKey(5), jax.tree.leaves(ctxs)[0].shape[0])
+    t = time.perf_counter()
+    fn = jax.jit(jax.vmap(one)).lower(ctxs, keys).compile()
+    compile_s = time.perf_counter() - t
+    jax.block_until_ready(fn(ctxs, keys))
+    t = time.perf_counter()
+    sh, sh0, m = jax.block_until_ready(fn(ctxs, keys))
+    ms = (time.perf_counter() - t) * 1000 / keys.shape[0]
+    row = {
+        "config": name,
+        "method": method,
+        "overrides": overrides,
+        "shadow_return": float(np.mean(sh)),
+        "shadow_return_sem": float(np.std(sh) / np.sqrt(len(sh))),
+        "initial_shadow_return": float(np.mean(sh0)),
+        "plan_return": float(np.mean(m["plan_return"])),
+        "dyn_viol": float(np.mean(m["dyn_viol"])),
+        "compile_s": compile_s,
+        "ms_per_call_per_ctx": ms,
+    }
+    print(
+        f"  {name:<40} shadow {row['shadow_return']:6.2f} ± {row['shadow_return_sem']:.2f} "
+        f"(initial {row['initial_shadow_return']:.2f}, plan {row['plan_return']:6.2f}, "
+        f"viol {row['dyn_viol']:.3f})  {ms:7.1f} ms/call/ctx",
+        flush=True,
+    )
+    return row
+
+
+def env_section(name: str, method: str, overrides: list[str], params, episodes: int) -> dict:
+    cfg = load_cfg(method, overrides, episodes)
+    env = runner.make_env(cfg)
+    trainer = trainer_lib.make_train(cfg, env)
+    _, hyper, _ = trainer_lib.sweep_grid({}, 1)
+    hyper = jax.tree.map(lambda x: x[0], hyper)
+    state = jax.jit(trainer.init)(jax.random.PRNGKey(0), hyper).replace(wm=params)
+    key = jax.random.PRNGKey(1)
+    t = time.perf_counter()
+    fn = jax.jit(trainer.evaluate).lower(state, key).compile()
+    compile_s = time.perf_counter() - t
+    t = time.perf_counter()
+    returns = np.asarray(jax.block_until_ready(fn(state, key))["returns"])
+    run_s = time.perf_counter() - t
+    row = {
+        "config": name,
+        "method": method,
+        "overrides": overrides,
+        "returns": returns.tolist(),
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "compile_s": compile_s,
+        "s_per_episode_batch": run_s,
+    }
+    print(
+        f"  {name:<40} return {row['return_mean']:6.1f} ± {row['return_std']:.1f} "
+        f"over {episodes} episodes  ({run_s:.0f} s for the vmapped batch)",
+        flush=True,
+    )
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--section", choices=["model", "env", "all"], default="all")
+    ap.add_argument("--only", action="append", help="configuration name (repeatable)")
+    ap.add_argument("--episodes", type=int, default=4)
+    ap.add_argument("--fixture", type=Path, default=FIXTURE)
+    ap.add_argument("--list", action="store_true")
+    args = ap.parse_args(argv)
+    if args.list:
+        for name, (method, ov) in CONFIGS.items():
+            print(f"{name}: --method {method} {' '.join(ov)}")
+        return 0
+    names = args.only or list(CONFIGS)
+    unknown = [n for n in names if n not in CONFIGS]
+    if unknown:
+        raise SystemExit(f"unknown configuration(s) {unknown}; see --list")
+    base = load_cfg("collodreamer", NO_VALUE)
+    params, replay = load_params(base, args.fixture)
+    result = json.loads(OUT.read_text()) if OUT.exists() else {}
+    result.update({"fixture": str(args.fixture.relative_to(ROOT)), "cpu_count": os.cpu_count()})
+    if args.section in ("model", "all"):
+        print("model: cold planning calls from 16 replay contexts (reward-only objective, H=30)")
+        ctxs = contexts(base, params, replay)
+        rows = [model_section(n, *CONFIGS[n], params, ctxs) for n in names if n not in ENV_ONLY]
+        _merge(result, "model", rows)
+    if args.section in ("env", "all"):
+        print(f"env: real cheetah episodes with MPC on the fixture model ({args.episodes} vmapped)")
+        rows = [env_section(n, *CONFIGS[n], params, args.episodes) for n in names]
+        _merge(result, "env", rows)
+    OUT.parent.mkdir(exist_ok=True)
+    OUT.write_text(json.dumps(result, indent=1))
+    print(f"wrote {OUT.relative_to(ROOT)}")
+    return 0
+
+
+def _merge(result: dict, section: str, rows: list[dict]) -> None:
+    """Rows of a partial rerun replace the old rows of the same configuration."""
+    names = {r["config"] for r in rows}
+    result[section] = [r for r in result.get(section, []) if r["config"] not in names] + rows
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
