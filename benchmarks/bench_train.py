@@ -205,7 +205,8 @@ def main() -> None:
         "first_update_le_90s_cold": base["launch_to_first_update_s"] <= 90,
         "first_update_le_90s_warm": base["launch_to_first_update_warm_s"] <= 90,
     }
-    print("targets:", ", ".join(f"{k}: {'met' if v else 'NOT met'}" for k, v in targets.items()))
+    verdict = {True: "met", False: "NOT met", None: "not measured"}
+    print("targets:", ", ".join(f"{k}: {verdict[v]}" for k, v in targets.items()))
     load = os.getloadavg()[0]
     if load > (os.cpu_count() or 1) + 0.5:
         print(f"warning: load average {load:.1f} on {os.cpu_count()} CPUs: timings are contended")
