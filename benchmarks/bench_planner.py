@@ -16,8 +16,9 @@ Sections:
           (execute the plan's actions with the model's mean transition, re-plan from the reached
           state, warm start as configured) for several solver / iteration settings; reports the
           executed model return, its gain over random actions (paired: same starts and keys), and
-          GFLOP and ms per planning call. This is the measurement behind the default
-          ``planner.solver`` / ``planner.iters`` / ``planner.warm_start``. It uses the LatCo
+          GFLOP and ms per planning call. Random weights do not rank planners the way a trained
+          model does (30 warm Adam steps won here and did not plan at all on a trained model):
+          the defaults are chosen with ``bench_plan_quality.py`` instead. It uses the LatCo
           preset's model (Gaussian RSSM, stoch 30; 2.7x cheaper than the categorical one) and the
           reward-only objective: a random-weight value is not a correct value, and chasing it would
           not show in the executed reward. Exact Gauss-Newton is left out (a minute per call).
