@@ -7,6 +7,9 @@ with 1 and 2 threads. Target: batched MJX >= 0.5x native single-thread throughpu
 
     make bench-envs                      # all tasks
     make bench-envs ARGS="--tasks cheetah_run --batches 64"
+
+A run with ``--tasks`` replaces those tasks' rows in an existing JSON and keeps the others; the file
+is rewritten after each task, so a long run that is interrupted keeps the tasks it finished.
 """
 
 from __future__ import annotations
@@ -45,14 +48,21 @@ def main() -> None:
     import envs
 
     tasks = args.tasks or envs.registered()
+    unknown = sorted(set(tasks) - set(envs.registered()))
+    if unknown:
+        raise SystemExit(f"unknown task(s) {unknown}; registered: {envs.registered()}")
     devices = jax.devices()
     mesh = Mesh(np.array(devices[:2]), ("batch",))
+    out = Path(args.out)
+    # A partial run (--tasks ...) updates its tasks in an existing file and keeps the others, so
+    # the suite can be measured task by task; the file is rewritten after every task.
+    old = json.loads(out.read_text()) if out.exists() else {}
     results = {
         "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform()},
         "jax": jax.__version__,
         "mujoco": mujoco.__version__,
         "steps": args.steps,
-        "tasks": {},
+        "tasks": old.get("tasks", {}) if old.get("steps") == args.steps else {},
     }
 
     def best_time(fn, *a):
@@ -147,9 +157,9 @@ def main() -> None:
             flush=True,
         )
         results["tasks"][task] = row
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(results, indent=2))
 
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=2))
     print(f"\n{'task':15s} {'MJX best':>10s} {'native x1':>10s} {'ratio':>6s} {'compile s':>9s}")
     for task, row in results["tasks"].items():
         best = max(list(row["mjx"].values()) + list(row["mjx_2dev"].values()))

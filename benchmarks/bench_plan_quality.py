@@ -61,6 +61,15 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
         NO_VALUE + ["planner.iters=300", "planner.adam_lr=0.01"],
     ),
     "adam K=200 lr=0.015 warm": ("collodreamer", NO_VALUE + ["planner.warm_start=true"]),
+    # Half the iterations at any step size plans far worse: the multipliers tighten per iteration.
+    "adam K=100 lr=0.03": (
+        "collodreamer",
+        NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.03"],
+    ),
+    "adam K=100 lr=0.05 decay=0.1": (
+        "collodreamer",
+        NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.05", "planner.adam_decay=0.1"],
+    ),
     "gauss_newton K=30": (
         "collodreamer",
         NO_VALUE + ["planner.solver=gauss_newton", "planner.iters=30"],

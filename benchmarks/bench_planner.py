@@ -77,7 +77,12 @@ def build(cfg: Config, key: jax.Array) -> tuple[LatentModel, Any]:
     fns = wm.planning_fns(cfg.wm, cfg.planner.space)
     wparams = wm.init(cfg.wm, k_wm, (OBS_DIM,), ACTION_DIM)
     base = LatentModel(
-        start=fns.start, step=fns.step, reward=fns.reward, feat=fns.feat, ctx_feat=fns.ctx_feat
+        start=fns.start,
+        step=fns.step,
+        reward=fns.reward,
+        feat=fns.feat,
+        ctx_feat=fns.ctx_feat,
+        step_reward=fns.step_reward,
     )
     vstate = value_lib.init_value(cfg.value, k_v, wm.feat_size(cfg.wm))
     value_fn = lambda vp, f: value_lib.apply_value(cfg.value, vp, f)

@@ -75,6 +75,7 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
         value=None if value is None else (lambda p, z: value(p[1], fns.feat(p[0], z))),
         feat=lambda p, z: fns.feat(p[0], z),
         ctx_feat=lambda p, ctx: fns.ctx_feat(p[0], ctx),
+        step_reward=lambda p, z, a: fns.step_reward(p[0], z, a),
     )
     return Agent(cfg, action_dim, fns, model, planner_lib.make_planner(cfg, model, action_dim))
 

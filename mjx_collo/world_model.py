@@ -881,6 +881,8 @@ class PlanningFns(NamedTuple):
     reward(wm_params, z [Z]) -> []: predicted reward of arriving in z;
     feat(wm_params, z [Z]) -> [F]: Dreamer feature for value / actor heads;
     ctx_feat(wm_params, ctx) -> [F]: feature of a posterior state;
+    step_reward(wm_params, z [Z], a [A]) -> (step(z, a), reward(z)): both in one pass (the reduced
+      space computes the prior m(h) once for the two; ~15% of a collocation iteration);
     size: Z.
     """
 
@@ -889,6 +891,7 @@ class PlanningFns(NamedTuple):
     reward: Callable[[Params, jax.Array], jax.Array]
     feat: Callable[[Params, jax.Array], jax.Array]
     ctx_feat: Callable[[Params, RSSMState], jax.Array]
+    step_reward: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
     size: int
 
 
@@ -930,6 +933,10 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
         def feat(p: Params, z: jax.Array) -> jax.Array:
             return jnp.concatenate([prior_mean(cfg, p, z), z], -1)
 
+        def step_reward(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+            m = prior_mean(cfg, p, z)
+            return _transition(cfg, p, m, z, a), reward(cfg, p, jnp.concatenate([m, z], -1))
+
         size = cfg.deter
     else:
         raise ValueError(f"unknown collocation space {space!r}; valid: full, reduced")
@@ -937,7 +944,20 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
     def rew(p: Params, z: jax.Array) -> jax.Array:
         return reward(cfg, p, feat(p, z))
 
-    return PlanningFns(start=start, step=step, reward=rew, feat=feat, ctx_feat=ctx_feat, size=size)
+    if space == "full":
+
+        def step_reward(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+            return step(p, z, a), rew(p, z)
+
+    return PlanningFns(
+        start=start,
+        step=step,
+        reward=rew,
+        feat=feat,
+        ctx_feat=ctx_feat,
+        step_reward=step_reward,
+        size=size,
+    )
 
 
 class ImagineFns(NamedTuple):

@@ -348,6 +348,9 @@ def test_planning_fns_shapes_and_agreement_with_img_step_means(latent):
             # Vmappable over plans, differentiable (the planner takes Jacobians).
             "vmapped": jax.vmap(full.step, (None, 0, None))(params, jnp.stack(zf), acts[0]),
             "jac": jax.jacfwd(red.step, argnums=(1, 2))(params, zr[-1], acts[0]),
+            # step_reward (the planners' shared pass) == step and reward called separately.
+            "sr_f": full.step_reward(params, zf[0], acts[1]),
+            "sr_r": red.step_reward(params, zr[0], acts[1]),
         }
 
     o = run(params, post)
@@ -359,6 +362,9 @@ def test_planning_fns_shapes_and_agreement_with_img_step_means(latent):
     _close(o["rew_r"], o["rew_f"])
     assert o["rew_f"].shape == (4,)
     _close(o["ctx_feat"], o["post_feat"])
+    for (z_next, r), zs, rs in ((o["sr_f"], o["zf"], o["rew_f"]), (o["sr_r"], o["zr"], o["rew_r"])):
+        _close(z_next, zs[1])
+        _close(r, rs[0])
     assert o["vmapped"].shape == (4, full.size)
     assert o["jac"][0].shape == (red.size, red.size) and o["jac"][1].shape == (red.size, ACT)
     assert float(jnp.abs(o["jac"][1]).max()) > 0

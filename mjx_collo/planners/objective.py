@@ -101,6 +101,19 @@ def predict(prob: Problem, z: jax.Array, a: jax.Array) -> jax.Array:
     return jnp.concatenate([z1[None], rest], axis=0)
 
 
+def predict_and_rewards(prob: Problem, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """:func:`predict` and the rewards r(z_k) [H] of the plan states, sharing the work the model's
+    ``step_reward`` shares (the reduced RSSM space: one prior per state instead of two)."""
+    m, p = prob.model, prob.params
+    if m.step_reward is None:
+        return predict(prob, z, a), jax.vmap(m.reward, in_axes=(None, 0))(p, z)
+    z1 = m.start(p, prob.ctx, a[0])
+    rest, r_head = jax.vmap(m.step_reward, in_axes=(None, 0, 0))(p, z[:-1], a[1:])
+    r_last = m.reward(p, z[-1])
+    pred = jnp.concatenate([z1[None], rest], axis=0)
+    return pred, jnp.concatenate([r_head, r_last[None]], axis=0)
+
+
 def bootstrap_value(prob: Problem, z_last: jax.Array) -> jax.Array:
     """Frozen value of the last plan state, clipped when ``value.clip``. z_last: [Z] -> []."""
     if not prob.bootstrap:
@@ -125,11 +138,11 @@ def value_residual(prob: Problem, z_last: jax.Array) -> jax.Array:
 
 def raw_residuals(prob: Problem, z: jax.Array, a: jax.Array) -> Raw:
     """Unweighted residual blocks of the plan. z: [H, Z], a: [H, A]."""
-    rew = jax.vmap(reward_residual, in_axes=(None, 0))(prob, z)
+    pred, rewards = predict_and_rewards(prob, z, a)
     return Raw(
-        d=z - predict(prob, z, a),
+        d=z - pred,
         hinge=duals.act_hinge(a),
-        rew=rew,
+        rew=jax.nn.softplus(-rewards),
         val=value_residual(prob, z[-1]),
     )
 
@@ -165,13 +178,13 @@ def cost(raw: Raw, w: Weights) -> jax.Array:
 
 def exact_terms(prob: Problem, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array, Raw]:
     """Exact objective pieces: (J [], rewards [H], raw residuals for the constraints)."""
-    rewards = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, z)
+    pred, rewards = predict_and_rewards(prob, z, a)
     v = bootstrap_value(prob, z[-1])
     h = z.shape[0]
     j = jnp.sum(discounts(prob.gamma, h) * rewards)
     if prob.bootstrap:
         j = j + jnp.power(prob.gamma, h) * v
-    raw = Raw(d=z - predict(prob, z, a), hinge=duals.act_hinge(a), rew=rewards, val=v)
+    raw = Raw(d=z - pred, hinge=duals.act_hinge(a), rew=rewards, val=v)
     return j, rewards, raw
 
 

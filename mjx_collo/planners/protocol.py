@@ -36,6 +36,9 @@ class LatentModel(NamedTuple):
       feat: ``(params, z [Z]) -> [F]`` value-network input features of ``z`` (needed only by the
         plan-based value-learning modes), or None.
       ctx_feat: ``(params, ctx) -> [F]`` features of the context (the plan's start state), or None.
+      step_reward: optional ``(params, z [Z], a [A]) -> (step(z, a), reward(z))`` in one pass, for
+        models where the two share work (the reduced RSSM space computes the prior of ``z`` for
+        both); equal to calling ``step`` and ``reward``. None: the planners call them separately.
     """
 
     start: Callable[[Params, Context, jax.Array], jax.Array]
@@ -44,6 +47,7 @@ class LatentModel(NamedTuple):
     value: Callable[[Params, jax.Array], jax.Array] | None = None
     feat: Callable[[Params, jax.Array], jax.Array] | None = None
     ctx_feat: Callable[[Params, Context], jax.Array] | None = None
+    step_reward: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]] | None = None
 
 
 def attach_value(
@@ -59,7 +63,7 @@ def attach_value(
       feat: ``(wm_params, z [Z]) -> [F]``.
       value: ``(value_params, f [F]) -> []`` deterministic (target) value network.
     """
-    ctx_feat = model.ctx_feat
+    ctx_feat, step_reward = model.ctx_feat, model.step_reward
     return LatentModel(
         start=lambda p, ctx, a: model.start(p[0], ctx, a),
         step=lambda p, z, a: model.step(p[0], z, a),
@@ -67,6 +71,7 @@ def attach_value(
         value=lambda p, z: value(p[1], feat(p[0], z)),
         feat=lambda p, z: feat(p[0], z),
         ctx_feat=None if ctx_feat is None else (lambda p, ctx: ctx_feat(p[0], ctx)),
+        step_reward=None if step_reward is None else (lambda p, z, a: step_reward(p[0], z, a)),
     )
 
 
