@@ -26,6 +26,8 @@ import numpy as np
 from brax.envs.base import Env, State
 from mujoco import mjx
 
+from envs import pipeline
+
 ASSETS = Path(__file__).resolve().parent / "assets"
 
 # Physics option sets: "dmc" reproduces dm_control's XML exactly; "tuned" is the per-task set of
@@ -68,9 +70,9 @@ def tune_solver(m: mujoco.MjModel, iterations: int, ls_iterations: int, eulerdam
 def stage1(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """MuJoCo's ``mj_step1``: position and velocity stages (kinematics, COM, collisions,
     constraint rows, transmission, passive and bias forces) and position/velocity sensors."""
-    d = mjx.fwd_position(m, d)
+    d = pipeline.fwd_position(m, d)
     d = mjx.sensor_pos(m, d)
-    d = mjx.fwd_velocity(m, d)
+    d = pipeline.fwd_velocity(m, d)
     d = mjx.sensor_vel(m, d)
     return d
 
