@@ -50,7 +50,7 @@ class CheetahRun(base.MjxTask):
         data = self._data_at(qpos, jnp.zeros(m.nv))
 
         def settle(d, _):
-            return base.substep(self.mjx_model, d), None
+            return self.substep(d), None
 
         # dm_control: physics.step(nstep=200) with ctrl = 0, then data.time = 0.
         data, _ = jax.lax.scan(settle, data, None, length=SETTLE_STEPS)

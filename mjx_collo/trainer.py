@@ -296,6 +296,13 @@ def make_train(cfg: Config, env: Any) -> Trainer:
         s, sums = jax.lax.fori_loop(0, n, body, (s, zeros))
         return s, {k: v / jnp.maximum(n, 1).astype(jnp.float32) for k, v in sums.items()}
 
+    # Each of these is traced several times per program (for output shapes, then in both
+    # branches of a lax.cond, then again for evaluation); as jitted functions with one identity
+    # the later traces come from JAX's cache. XLA inlines them, so the compiled program is the same.
+    _policy = jax.jit(_policy, static_argnums=3)
+    _update = jax.jit(_update)
+    _learn = jax.jit(_learn)
+
     # ---- one iteration --------------------------------------------------------------------------
 
     def iteration(carry, _):
