@@ -196,10 +196,20 @@ def _iters(cfg: Config) -> int:
 # Runs with fewer iterations are extrapolated linearly in K (marked ``extrap``).
 CALLS: list[tuple[str, str, list[str], dict[int, int | None]]] = [
     ("collodreamer/adam (default)", "collodreamer", [], {1: None, 16: None}),
-    ("collodreamer/cg", "collodreamer", ["planner.solver=cg"], {1: None, 16: 5}),
-    ("collodreamer/gauss_newton", "collodreamer", ["planner.solver=gauss_newton"], {1: 5, 16: 2}),
+    (
+        "collodreamer/cg",
+        "collodreamer",
+        ["planner.solver=cg", "planner.iters=30"],
+        {1: None, 16: 5},
+    ),
+    (
+        "collodreamer/gauss_newton",
+        "collodreamer",
+        ["planner.solver=gauss_newton", "planner.iters=30"],
+        {1: 5, 16: 2},
+    ),
     ("latco/adam", "latco", [], {1: None, 16: None}),
-    ("latco/cg", "latco", ["planner.solver=cg"], {1: None, 16: 5}),
+    ("latco/cg", "latco", ["planner.solver=cg", "planner.iters=30"], {1: None, 16: 5}),
     (
         "latco/gauss_newton exact LC (K=100)",
         "latco",
@@ -314,18 +324,24 @@ def _print_call(r: dict[str, Any]) -> None:
 
 # The MPC comparison uses the LatCo objective (rewards only): with random weights the value net is
 # not a correct value, and chasing it would not show up in the executed reward.
+OLD = ["planner.iters=30", "planner.adam_lr=0.05", "planner.warm_start=true"]  # pre-a67d95a default
 MPC: list[tuple[str, str, list[str]]] = [
     ("random actions (no planning)", "latco", ["planner.iters=0"]),
-    ("adam K=30 warm (default)", "latco", []),
-    ("adam K=15 warm", "latco", ["planner.iters=15"]),
-    ("adam K=30 cold", "latco", ["planner.warm_start=false"]),
-    ("adam K=100 warm", "latco", ["planner.iters=100"]),
+    ("adam K=200 lr 0.015 cold (default)", "latco", []),
+    ("adam K=30 lr 0.05 warm (old default)", "latco", OLD),
+    ("adam K=15 lr 0.05 warm", "latco", [*OLD, "planner.iters=15"]),
+    ("adam K=30 lr 0.05 cold", "latco", [*OLD, "planner.warm_start=false"]),
+    ("adam K=100 lr 0.05 warm", "latco", [*OLD, "planner.iters=100"]),
     (
         "cg K=10 cg_iters=3 warm",
         "latco",
-        ["planner.solver=cg", "planner.iters=10", "planner.cg_iters=3"],
+        ["planner.solver=cg", "planner.iters=10", "planner.cg_iters=3", "planner.warm_start=true"],
     ),
-    ("cg K=30 cg_iters=3 warm", "latco", ["planner.solver=cg", "planner.cg_iters=3"]),
+    (
+        "cg K=30 cg_iters=3 warm",
+        "latco",
+        ["planner.solver=cg", "planner.iters=30", "planner.cg_iters=3", "planner.warm_start=true"],
+    ),
 ]
 
 

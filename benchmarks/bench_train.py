@@ -47,7 +47,11 @@ def worker(spec: dict) -> dict:
     from mjx_collo import config, runner
 
     task = envs.canonical(spec["task"])
-    overrides = [f"run.chunk_env_steps={STEADY_CHUNK}", f"run.steps={spec['total']}"]
+    overrides = [
+        f"run.chunk_env_steps={STEADY_CHUNK}",
+        f"run.steps={spec['total']}",
+        *spec.get("overrides", []),
+    ]
     cfg = config.load(task=task, method=spec["method"], overrides=overrides)
     env = runner.make_env(cfg)
     logs: list[str] = []
@@ -114,6 +118,13 @@ def main() -> None:
     ap.add_argument("--seeds", default="1,2,4", help="vmapped seed counts (default method)")
     ap.add_argument("--steps", type=int, default=100_000, help="run length the estimate is for")
     ap.add_argument("--out", default="bench_results/train.json")
+    ap.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config overrides for every measured run (e.g. planner.iters=1 to time the rest)",
+    )
     args = ap.parse_args()
     if args.worker:
         print(json.dumps(worker(json.loads(args.worker))))
@@ -134,6 +145,7 @@ def main() -> None:
             "cache": cache,
             "run": str(tmp / name),
             "eval": ev,
+            "overrides": args.set,
         }
 
     for method in methods:

@@ -7,11 +7,12 @@
   ColloDreamer adds the discounted rewards and the frozen-value bootstrap;
 * ``cem`` / ``mppi`` / ``mppi_value``: shooting baselines (§5).
 
-Default solver (``adam``, 30 warm-started iterations): chosen by return per CPU second in
-``benchmarks/bench_planner.py`` (MPC inside a random-weight RSSM). An Adam iteration costs one
-gradient (~2 forward passes of the plan); a matrix-free GN iteration costs ~11x that and an exact GN
-iteration ~100x, while LatCo's multipliers (x1.4 per iteration at most) need many outer
-iterations whatever the primal step, so the cheap step wins at equal time.
+Default solver (``adam``, 200 cold-started iterations at lr 0.015): chosen by plan quality per
+CPU second on a *trained* world model (``benchmarks/bench_plan_quality.py``; fewer iterations or a
+warm start plan markedly worse there). An Adam iteration costs one gradient (~2 forward passes of
+the plan); a matrix-free GN iteration costs ~11x that and an exact GN iteration ~100x, while
+LatCo's multipliers (x1.4 per iteration at most) need many outer iterations whatever the primal
+step, so the cheap step wins at equal time.
 
 Everything is pure and unbatched; the caller vmaps over envs (and seeds). The model is the
 :class:`~mjx_collo.planners.protocol.LatentModel` protocol; nothing here imports the world model.

@@ -175,3 +175,30 @@ def test_checkpoint_from_another_config_fails_with_one_line(capsys, runs):
 def test_config_inconsistency_names_the_fix():
     with pytest.raises(config.ConfigError, match="multiple of run.chunk_env_steps"):
         trainer.validate(debug_cfg(overrides=["run.eval_every=500"]))
+
+
+def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
+    """A seed axis of size 1 is dropped (batched dots are slow on XLA's CPU backend): same
+    numbers as the vmapped program, no batch dimension in any dot, the axis back on the output."""
+    import jax.numpy as jnp
+
+    def f(w, x, scale):
+        return {"y": jnp.tanh(x @ w) * scale, "n": jnp.sum(w)}
+
+    g = trainer.over_seeds(f, (0, 0, None))
+    key_w, key_x = jax.random.split(jax.random.PRNGKey(0))
+    for seeds in (1, 3):
+        w = jax.random.normal(key_w, (seeds, 8, 4))
+        x = jax.random.normal(key_x, (seeds, 5, 8))
+        got = jax.jit(g)(w, x, 2.0)
+        want = jax.vmap(f, in_axes=(0, 0, None))(w, x, 2.0)
+        assert got["y"].shape == (seeds, 5, 4) and got["n"].shape == (seeds,)
+        np.testing.assert_allclose(got["y"], want["y"], rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(got["n"], want["n"], rtol=1e-6)
+        dots = [
+            e.params["dimension_numbers"]
+            for e in jax.make_jaxpr(g)(w, x, 2.0).jaxpr.eqns
+            if e.primitive.name == "dot_general"
+        ]
+        batch_dims = [d[1] for d in dots]
+        assert all(b == ((), ()) for b in batch_dims) == (seeds == 1), batch_dims
