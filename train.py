@@ -54,6 +54,29 @@ def setup_jax() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
 
 
+def setup_distributed(args: argparse.Namespace) -> None:
+    """Join a multi-process run (``--distributed``) before anything touches a JAX backend.
+
+    Every process runs the same command with its own ``--process-id``; the seed axis is sharded
+    over all processes' devices. On CPU the cross-process collectives go through gloo."""
+    if not args.distributed:
+        return
+    import jax
+
+    explicit = (args.coordinator, args.num_processes, args.process_id)
+    if any(x is not None for x in explicit) and any(x is None for x in explicit):
+        raise ValueError(
+            "--distributed needs all of --coordinator host:port, --num-processes N and "
+            "--process-id I (or none of them on a cluster JAX detects, e.g. SLURM)"
+        )
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(
+        coordinator_address=args.coordinator,
+        num_processes=args.num_processes,
+        process_id=args.process_id,
+    )
+
+
 def default_run_dir(
     task: str, method: str, seeds: int, presets: list[str], sweep: str | None, overrides: list[str]
 ) -> Path:
@@ -69,6 +92,11 @@ def default_run_dir(
 
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
+    try:
+        setup_distributed(args)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     import envs
     from mjx_collo import config, runner
     from mjx_collo.checkpoint import CheckpointError
@@ -97,6 +125,13 @@ def main(argv: list[str] | None = None) -> int:
         + (f" x sweep {sweep}" if sweep else "")
         + f", {cfg.run.steps} env steps -> {run_dir}"
     )
+    if args.distributed:
+        import jax
+
+        print(
+            f"jax.distributed: process {jax.process_index()}/{jax.process_count()}, "
+            f"{jax.device_count()} devices ({jax.local_device_count()} on this process)"
+        )
     env = runner.make_env(cfg)
     try:
         r = runner.Run(

@@ -144,7 +144,10 @@ class MjxTask(Env):
             raise ValueError(f"unknown physics {physics!r}; choose one of {PHYSICS}")
         self.physics = physics
         self.mj_model = mj_model
-        self.mjx_model = mjx.put_model(mj_model, impl="jax")
+        # On this process's device: MJX's default is jax.devices()[0], which in a multi-process
+        # run (jax.distributed) belongs to process 0 and cannot be used as a constant elsewhere.
+        device = jax.local_devices()[0]
+        self.mjx_model = mjx.put_model(mj_model, impl="jax", device=device)
         self.n_substeps = int(round(control_dt / mj_model.opt.timestep))
         self._dt = control_dt
         if mj_model.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
@@ -154,7 +157,7 @@ class MjxTask(Env):
         reset_model = copy.copy(mj_model) if self.acc_observations else None
         if reset_model is not None:
             reset_model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
-            self._mjx_reset_model = mjx.put_model(reset_model, impl="jax")
+            self._mjx_reset_model = mjx.put_model(reset_model, impl="jax", device=device)
         # The physics stages as jitted closures with one identity per env: every call site
         # (reset's stage 1, cheetah's settling scan, the step's substep scan, the trainer's
         # auto-reset and evaluation) reuses one trace from JAX's cache instead of re-tracing

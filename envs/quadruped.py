@@ -65,8 +65,8 @@ class QuadrupedMove(base.MjxTask):
         self.name = name
         self.desired_speed = desired_speed
         hinges = np.flatnonzero(m.jnt_type == mujoco.mjtJoint.mjJNT_HINGE)
-        self._hinge_q = jnp.asarray(m.jnt_qposadr[hinges])
-        self._hinge_v = jnp.asarray(m.jnt_dofadr[hinges])
+        self._hinge_q = np.asarray(m.jnt_qposadr[hinges])
+        self._hinge_v = np.asarray(m.jnt_dofadr[hinges])
         self._torso = base.obj_id(m, "body", "torso")
         self._velocimeter = base.sensor(m, "velocimeter")
         # dm_control orders imu and force/torque sensors by sensor id (np.isin over sensor_type).
@@ -86,7 +86,7 @@ class QuadrupedMove(base.MjxTask):
                 or rm.geom_conaffinity[g] & rm.geom_contype[floor_id]
             )
         ]
-        self._mjx_reset_model = mjx.put_model(rm, impl="jax")
+        self._mjx_reset_model = mjx.put_model(rm, impl="jax", device=jax.local_devices()[0])
 
     @staticmethod
     def _sensor_indices(m: mujoco.MjModel, sensor_ids: np.ndarray) -> jax.Array:

@@ -68,7 +68,8 @@ class NormalizeActions(Wrapper):
         low, high = np.asarray(base.action_low), np.asarray(base.action_high)
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high))):
             raise ValueError("NormalizeActions needs finite actuator ctrlranges")
-        self._low, self._high = jnp.asarray(low), jnp.asarray(high)
+        # numpy, so they enter programs as literals (no device placement: multi-process safe)
+        self._low, self._high = low.astype(np.float32), high.astype(np.float32)
 
     def step(self, state: State, action: jax.Array) -> State:
         a = jnp.clip(action, -1.0, 1.0)

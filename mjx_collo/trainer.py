@@ -467,6 +467,11 @@ def sweep_grid(
 def mesh_sharding(num_seeds: int):
     """NamedSharding of the seed axis over all devices (None if 1 device or not divisible)."""
     devices = jax.devices()
+    if jax.process_count() > 1 and num_seeds % len(devices):
+        raise ConfigError(
+            f"{num_seeds} run(s) cannot be split over the {len(devices)} devices of "
+            f"{jax.process_count()} processes: use a multiple of {len(devices)} seeds x sweep values"
+        )
     if len(devices) < 2 or num_seeds % len(devices):
         return None
     import numpy as np
@@ -510,7 +515,7 @@ def batched(trainer: Trainer, sharding=None):
     evaluate = over_seeds(trainer.evaluate, (0, 0))
     if sharding is None:
         return (jax.jit(init), jax.jit(chunk, donate_argnums=0), jax.jit(evaluate))
-    rep = sharding.with_spec(jax.sharding.PartitionSpec())
+    rep = jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec())
     return (
         jax.jit(init, in_shardings=(sharding, sharding), out_shardings=sharding),
         jax.jit(

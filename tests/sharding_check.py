@@ -40,7 +40,9 @@ def main() -> None:
         else 0.0
         for x, y in zip(la, lb, strict=True)
     ]
-    finite = [bool(np.all(np.isfinite(np.asarray(x, np.float64)))) for x in la]
+    # The state must be finite; metrics legitimately hold NaN where nothing happened (prefill
+    # iterations have no plan metrics, most iterations end no episode).
+    finite = [bool(np.all(np.isfinite(np.asarray(x, np.float64)))) for x in jax.tree.leaves(a[0])]
     print(
         json.dumps(
             {

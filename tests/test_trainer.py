@@ -202,3 +202,8 @@ def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
         ]
         batch_dims = [d[1] for d in dots]
         assert all(b == ((), ()) for b in batch_dims) == (seeds == 1), batch_dims
+
+
+def test_incomplete_distributed_arguments_fail_with_one_line(capsys):
+    err = _main_error(capsys, ["--env", "reacher", "--distributed", "--coordinator", "h:1234"])
+    assert "--num-processes" in err and "--process-id" in err
