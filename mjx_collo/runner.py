@@ -124,7 +124,7 @@ class Run:
     def _it(self, it: int) -> Any:
         if self.sharding is None:
             return jnp.int32(it)
-        rep = jax.sharding.NamedSharding(self.sharding.mesh, jax.sharding.PartitionSpec())
+        rep = trainer_lib.replicated(self.sharding)
         return jax.make_array_from_callback((), rep, lambda idx: np.int32(it))
 
     # ---- state -----------------------------------------------------------------------------

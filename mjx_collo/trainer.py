@@ -481,6 +481,11 @@ def mesh_sharding(num_seeds: int):
     return NamedSharding(mesh, PartitionSpec("seed"))
 
 
+def replicated(sharding):
+    """The same mesh as ``sharding`` with every array replicated (schedule counters)."""
+    return jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec())
+
+
 def over_seeds(f: Callable, in_axes: tuple[int | None, ...]) -> Callable:
     """``vmap(f, in_axes)`` over the seed axis, except that one seed runs unbatched.
 
@@ -515,7 +520,7 @@ def batched(trainer: Trainer, sharding=None):
     evaluate = over_seeds(trainer.evaluate, (0, 0))
     if sharding is None:
         return (jax.jit(init), jax.jit(chunk, donate_argnums=0), jax.jit(evaluate))
-    rep = jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec())
+    rep = replicated(sharding)
     return (
         jax.jit(init, in_shardings=(sharding, sharding), out_shardings=sharding),
         jax.jit(
