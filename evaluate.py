@@ -21,7 +21,33 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--video", action="store_true", help="write a GIF of episode 0 of each seed")
     p.add_argument("--size", type=int, default=128, help="video frame size in pixels")
     p.add_argument("--out", default=None, help="output directory (default: the run directory)")
+    p.add_argument(
+        "overrides",
+        nargs="*",
+        help="planner settings to evaluate with instead of the trained ones, e.g. "
+        "planner.mpc_steps=5 planner.iters=400 (only planner.* keys: the rest shapes the networks)",
+    )
     return p.parse_args(argv)
+
+
+EVAL_SECTIONS = ("planner",)  # how a trained agent acts; every other key shapes what was trained
+
+
+def eval_config(cfg, overrides):
+    """The checkpoint's config with evaluation-time ``planner.*`` overrides applied."""
+    from mjx_collo import config
+
+    if not overrides:
+        return cfg
+    new = config.build(config.apply_overrides(config.to_dict(cfg), overrides, EVAL_SECTIONS))
+    if (new.planner.kind == "dreamer") != (cfg.planner.kind == "dreamer"):
+        raise config.ConfigError(
+            f"cannot evaluate a planner.kind={cfg.planner.kind} checkpoint with "
+            f"planner.kind={new.planner.kind}: only dreamer checkpoints hold an actor, and the "
+            "actor is their policy; switch between the planners (latco, collodreamer, cem, mppi, "
+            "mppi_value) instead"
+        )
+    return new
 
 
 def main(argv=None) -> int:
@@ -40,13 +66,14 @@ def main(argv=None) -> int:
             raise checkpoint.CheckpointError(f"no checkpoint found under {args.ckpt}")
         meta = ckpt.meta(step)
         cfg = ckpt.config(step)
+        cfg_run = eval_config(cfg, args.overrides)
     except (checkpoint.CheckpointError, FileNotFoundError, config.ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.episodes < 1:
         print("error: --episodes must be >= 1", file=sys.stderr)
         return 2
-    cfg_eval = cfg.model_copy(
+    cfg_eval = cfg_run.model_copy(
         update={"run": cfg.run.model_copy(update={"eval_episodes": args.episodes})}
     )
     env = runner.make_env(cfg)
@@ -56,7 +83,9 @@ def main(argv=None) -> int:
     keys = trainer.seed_keys(cfg, n)
     # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
     hyper = {k: np.zeros(n, np.float32) for k in labels[0] if k != "seed"}
-    abstract = jax.eval_shape(jax.vmap(tr.init), keys, hyper).replace(replay=None)
+    # the state's shapes follow the trained config (the acting caches depend on planner.mpc_steps)
+    init = tr.init if cfg_eval.planner == cfg.planner else trainer.make_train(cfg, env).init
+    abstract = jax.eval_shape(jax.vmap(init), keys, hyper).replace(replay=None)
     state, _, _ = ckpt.restore(abstract, None, step)
     t = time.perf_counter()
     eval_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, step), 7))(keys)
@@ -87,6 +116,7 @@ def main(argv=None) -> int:
         "method": cfg.method,
         "env_steps": step,
         "episodes": args.episodes,
+        "overrides": list(args.overrides),
         "runs": rows,
         "mean_over_runs": float(means.mean()),
         "std_over_runs": float(means.std()),

@@ -335,10 +335,27 @@ def load(
         _set_path(tree, ["env", "task"], task)
     for p in presets:
         tree = deep_merge(tree, _overlay("preset", p, required=True))
+    return build(apply_overrides(tree, overrides))
+
+
+def apply_overrides(
+    tree: dict[str, Any], overrides: Sequence[str], sections: Sequence[str] | None = None
+) -> dict[str, Any]:
+    """Set dotted ``key=value`` overrides in a plain config tree (in place; returned).
+
+    With ``sections`` only keys under those top-level sections may be set (evaluation may change
+    how a trained agent plans, not what it is).
+    """
     for text in overrides:
         path, value = parse_override(text)
+        if sections is not None and path[0] not in sections:
+            raise ConfigError(
+                f"cannot override '{'.'.join(path)}' here: only "
+                f"{', '.join(s + '.*' for s in sections)} keys may change; "
+                "the rest must match the checkpoint"
+            )
         _set_path(tree, path, value)
-    return build(tree)
+    return tree
 
 
 def to_dict(cfg: Config) -> dict[str, Any]:

@@ -16,6 +16,7 @@ import jax
 import numpy as np
 import pytest
 
+import evaluate as eval_cli
 import train as train_cli
 from mjx_collo import config, runner, trainer
 
@@ -170,6 +171,43 @@ def test_checkpoint_from_another_config_fails_with_one_line(capsys, runs):
         ],
     )
     assert "different config" in err and "wm.deter: 16 -> 32" in err
+
+
+def test_make_eval_with_another_planner_budget(capsys, runs, tmp_path):
+    """`make eval` on the run directory with a planner override that changes the shape of the
+    acting caches saved in the checkpoint (mpc_steps 2 -> 4): it restores, plans with the new
+    setting, and writes a per-seed table and eval.json that records the override."""
+    _, (res_a, _), _ = runs
+    code = eval_cli.main(
+        ["--ckpt", str(res_a.run_dir), "--episodes", "2", "--out", str(tmp_path)]
+        + ["planner.mpc_steps=4", "planner.iters=5"]
+    )
+    out = capsys.readouterr().out
+    assert code == 0, out
+    result = json.loads((tmp_path / "eval.json").read_text())
+    assert result["overrides"] == ["planner.mpc_steps=4", "planner.iters=5"]
+    assert result["env_steps"] == 800 and len(result["runs"]) == 2
+    returns = np.array([r["returns"] for r in result["runs"]])
+    assert returns.shape == (2, 2) and np.all(np.isfinite(returns)) and np.all(returns >= 0)
+    assert "seed=0" in out and "seed=1" in out and "all runs" in out
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("wm.deter=32", "cannot override 'wm.deter'"),
+        ("planner.kind=dreamer", "only dreamer checkpoints hold an actor"),
+        ("planner.mpc_step=4", "unknown config key 'planner.mpc_step'"),
+    ],
+)
+def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(
+    capsys, runs, override, message
+):
+    _, (res_a, _), _ = runs
+    code = eval_cli.main(["--ckpt", str(res_a.run_dir), override])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert message in err, err
 
 
 def test_config_inconsistency_names_the_fix():
