@@ -1,0 +1,141 @@
+"""Why does reacher_easy plateau? Reaching diagnostics of a trained checkpoint.
+
+``python benchmarks/probe_reacher.py --ckpt RUN_DIR --seed 0 --episodes 6 [planner.k=v ...]``
+
+Runs deterministic episodes (as ``make eval`` does) with one seed of a reacher checkpoint, under
+optional ``planner.*`` overrides, and records per episode: the return, the finger-to-target distance
+at the start, its minimum, the first agent step with reward, and the value of the posterior at the
+start and the end. The task pays reward only inside ``target + finger radius`` (0.06 on
+reacher_easy), so these separate "never goes near the target" (a model / value problem: the agent
+does not know the target pays) from "gets near but cannot stay" (a control-precision problem: e.g.
+too many actions executed open-loop). Appends a row to ``bench_results/reacher_probe.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--ckpt", required=True, help="reacher run directory or checkpoint step dir")
+    p.add_argument("--seed", type=int, default=0, help="which seed of the run")
+    p.add_argument("--episodes", type=int, default=6)
+    p.add_argument("--out", default=str(ROOT / "bench_results" / "reacher_probe.json"))
+    p.add_argument("overrides", nargs="*", help="planner.* overrides, as for make eval")
+    args = p.parse_args(argv)
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import evaluate
+    from mjx_collo import agent as agent_lib
+    from mjx_collo import checkpoint, runner, trainer
+    from mjx_collo import value as value_lib
+    from mjx_collo import world_model as wm_lib
+    from train import setup_jax
+
+    setup_jax()
+    ck = checkpoint.Checkpointer(args.ckpt, read_only=True)
+    step = ck.latest_step()
+    meta, cfg0 = ck.meta(step), ck.config(step)
+    if not cfg0.env.task.startswith("reacher"):
+        print(f"error: {cfg0.env.task} is not a reacher task", file=sys.stderr)
+        return 2
+    cfg = evaluate.eval_config(cfg0, args.overrides)
+    env = runner.make_env(cfg)
+    n_runs = meta["num_runs"]
+    keys = trainer.seed_keys(cfg0, n_runs)
+    hyper = {k: np.zeros(n_runs, np.float32) for k in meta["labels"][0] if k != "seed"}
+    init = trainer.make_train(cfg0, env).init
+    abstract = jax.eval_shape(jax.vmap(init), keys, hyper).replace(replay=None)
+    state, _, _ = ck.restore(abstract, None, step)
+    s = jax.tree.map(lambda x: x[args.seed], state)
+    agent = agent_lib.make_agent(cfg, int(env.action_size))
+    n, length = args.episodes, cfg.env.episode_env_steps // cfg.env.action_repeat
+
+    @jax.jit
+    def episodes(s, key):
+        k_env, k_carry, key = jax.random.split(key, 3)
+        es = jax.vmap(env.reset)(jax.random.split(k_env, n))
+        params = agent_lib.plan_params(s.wm, s.value.target if s.value is not None else None)
+        carry = agent_lib.init_carry(agent, params, n, k_carry)
+
+        def step_fn(c, t):
+            es, carry = c
+            k_obs, k_plan, k_act = jax.random.split(jax.random.fold_in(key, t), 3)
+            first = jnp.broadcast_to(t == 0, (n,))
+            carry = agent_lib.observe(agent, s.wm, carry, es.obs, first, k_obs)
+            carry = jax.lax.cond(
+                t % agent.cache_len == 0,
+                lambda cr: agent_lib.replan(agent, params, cr, k_plan)[0],
+                lambda cr: cr,
+                carry,
+            )
+            feat = wm_lib.get_feat(carry.post)
+            v = (
+                value_lib.apply_value(cfg.value, s.value.target, feat)
+                if s.value is not None
+                else jnp.zeros((n,))
+            )
+            a, carry = agent_lib.act(agent, None, carry, k_act, training=False)
+            es = jax.vmap(env.step)(es, a)
+            dist = jnp.linalg.norm(
+                es.obs[:, 2:4], axis=-1
+            )  # obs: position 2, to_target 2, velocity 2
+            return (es, carry), (es.reward, dist, v)
+
+        _, out = jax.lax.scan(step_fn, (es, carry), jnp.arange(length))
+        return out
+
+    t0 = time.perf_counter()
+    r, d, v = (np.asarray(x) for x in jax.device_get(episodes(s, jax.random.PRNGKey(123))))
+    secs = time.perf_counter() - t0
+    rows = []
+    for i in range(n):
+        hit = np.nonzero(r[:, i] > 0)[0]
+        rows.append(
+            {
+                "return": float(r[:, i].sum()),
+                "dist_start": float(d[0, i]),
+                "dist_min": float(d[:, i].min()),
+                "first_reward_step": int(hit[0]) if len(hit) else None,
+                "value_start": float(v[1, i]),
+                "value_end": float(v[-1, i]),
+            }
+        )
+        print(
+            f"episode {i}: return {rows[-1]['return']:6.1f}  distance start {d[0, i]:.3f} "
+            f"min {d[:, i].min():.3f}  first reward at step {hit[0] if len(hit) else '-'}  "
+            f"V start {v[1, i]:.1f} end {v[-1, i]:.1f}"
+        )
+    mean = float(r.sum(0).mean())
+    print(f"mean return {mean:.1f} over {n} episodes ({secs:.0f}s incl. compile)")
+    out = Path(args.out)
+    results = json.loads(out.read_text()) if out.exists() else []
+    results.append(
+        {
+            "ckpt": str(args.ckpt),
+            "env_steps": step,
+            "seed": args.seed,
+            "overrides": args.overrides,
+            "mean_return": mean,
+            "episodes": rows,
+        }
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
