@@ -235,19 +235,23 @@ def test_value_bootstrap_reaches_beyond_horizon(solver, iters):
     assert np.all(m_cd["plan_value"] > m_lc["plan_value"])
 
 
-def test_warm_start_shift_and_reset():
+def test_warm_start_shifts_actions_and_rolls_states_from_the_current_context():
     cfg = _cfg("latco", "planner.horizon=6", "planner.init_lam=2.0", "planner.init_nu=3.0")
     prob = obj.make_problem(cfg, LQ, None, CTX)
     prev = collocation.init_plan(cfg, prob, jax.random.PRNGKey(0), 2)
-    prev = prev.replace(lam=prev.lam * 7.0, nu=prev.nu * 5.0)
+    # A previous plan made from another context, with an out-of-bounds action and grown multipliers.
+    prev = prev.replace(
+        z=prev.z + 5.0, a=prev.a.at[5, 0].set(3.0), lam=prev.lam * 7.0, nu=prev.nu * 5.0
+    )
     new = collocation.shift_plan(cfg, prob, prev, 4)
-    np.testing.assert_allclose(new.a[:2], prev.a[4:])
-    np.testing.assert_allclose(new.z[:2], prev.z[4:])
-    np.testing.assert_allclose(new.a[2:], np.broadcast_to(prev.a[-1], (4, 2)))
-    z = prev.z[-1]
-    for t in range(2, 6):  # tail rolled forward with the last action
-        z = F @ z + G @ prev.a[-1]
+    np.testing.assert_allclose(new.a[:1], prev.a[4:5])
+    np.testing.assert_allclose(new.a[1:], np.broadcast_to([1.0, prev.a[5, 1]], (5, 2)))  # clipped
+    z = F @ CTX + G @ new.a[0]  # states rolled out from the current context, not the old plan's
+    for t in range(6):
+        if t:
+            z = F @ z + G @ new.a[t]
         np.testing.assert_allclose(new.z[t], z, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(obj.raw_residuals(prob, new.z, new.a).d, 0.0, atol=1e-5)
     np.testing.assert_allclose(new.lam, 2.0)
     np.testing.assert_allclose(new.nu, 3.0)
 

@@ -55,19 +55,20 @@ def init_plan(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> Pl
 
 
 def shift_plan(cfg: Config, prob: Problem, prev: PlanState, shift: int) -> PlanState:
-    """Warm start: drop the first ``shift`` steps, extend the tail by rolling the last state forward
-    with the last action, and reset the multipliers. prev: plan of the previous call."""
-    horizon = prev.z.shape[0]
+    """Warm start: drop the first ``shift`` actions of the previous plan, repeat its last action for
+    the new tail, clip to the action bounds, and roll the latents out from the *current* context
+    under those actions; the multipliers are reset. prev: plan of the previous call.
+
+    The previous plan's latents are not reused: they were planned from the old context, and after
+    ``shift`` real steps (exploration noise, model error) the posterior is elsewhere. Starting from
+    them starts the plan off the real trajectory.
+    """
+    horizon = prev.a.shape[0]
     shift = min(shift, horizon)
     a_last = prev.a[-1]
-
-    def extend(z: jax.Array, _: None) -> tuple[jax.Array, jax.Array]:
-        nz = prob.model.step(prob.params, z, a_last)
-        return nz, nz
-
-    _, tail = jax.lax.scan(extend, prev.z[-1], None, length=shift)
-    z = jnp.concatenate([prev.z[shift:], tail], axis=0)
     a = jnp.concatenate([prev.a[shift:], jnp.broadcast_to(a_last, (shift, a_last.shape[0]))])
+    a = jnp.clip(a, -1.0, 1.0)
+    z = rollout(prob.model, prob.params, prob.ctx, a)
     return reset_multipliers(cfg, prev.replace(z=z, a=a))
 
 
