@@ -86,9 +86,10 @@ ENV_ONLY = {"adam K=200 lr=0.015 warm"}
 
 
 def load_cfg(method: str, overrides: list[str], episodes: int = 4) -> config.Config:
-    return config.load(
-        task=TASK, method=method, overrides=[f"run.eval_episodes={episodes}"] + overrides
-    )
+    # The env section executes LatCo's 15 actions per planning call, as the recorded rows were
+    # measured (the training default is now 5; the model section is one call and unaffected).
+    base = [f"run.eval_episodes={episodes}", "planner.mpc_steps=15"]
+    return config.load(task=TASK, method=method, overrides=base + overrides)
 
 
 def load_params(cfg: config.Config, fixture: Path) -> tuple[dict, dict]:

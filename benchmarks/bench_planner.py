@@ -383,7 +383,8 @@ def bench_mpc(
     for label, method, overrides in configs or MPC:
         if not _selected(label, only) and rows:
             continue
-        cfg = load(method, overrides)
+        # LatCo's 15 actions per call, as the recorded rows were measured (the default is now 5)
+        cfg = load(method, ["planner.mpc_steps=15"] + overrides)
         model, params = build(cfg, jax.random.PRNGKey(0))
         ctx = contexts(cfg, params, jax.random.PRNGKey(1), batch)
         keys = jax.random.split(jax.random.PRNGKey(3), batch)
