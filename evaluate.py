@@ -50,6 +50,28 @@ def eval_config(cfg, overrides):
     return new
 
 
+def restore_state(ckpt, step: int, cfg, env):
+    """The seed-stacked train state of checkpoint ``step`` without the replay, and the seed keys.
+
+    cfg: the checkpoint's own config: the state's shapes follow it (the acting caches depend on
+    planner.mpc_steps), whatever planner settings the evaluation then uses.
+    """
+    import jax
+    import numpy as np
+
+    from mjx_collo import trainer
+
+    meta = ckpt.meta(step)
+    n = meta["num_runs"]
+    keys = trainer.seed_keys(cfg, n)
+    # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
+    hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
+    init = trainer.make_train(cfg, env).init
+    abstract = jax.eval_shape(jax.vmap(init), keys, hyper).replace(replay=None)
+    state, _, _ = ckpt.restore(abstract, None, step)
+    return state, keys
+
+
 def main(argv=None) -> int:
     args = parse(argv)
     import jax
@@ -80,13 +102,7 @@ def main(argv=None) -> int:
     tr = trainer.make_train(cfg_eval, env)
     labels = meta["labels"]
     n = meta["num_runs"]
-    keys = trainer.seed_keys(cfg, n)
-    # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
-    hyper = {k: np.zeros(n, np.float32) for k in labels[0] if k != "seed"}
-    # the state's shapes follow the trained config (the acting caches depend on planner.mpc_steps)
-    init = tr.init if cfg_eval.planner == cfg.planner else trainer.make_train(cfg, env).init
-    abstract = jax.eval_shape(jax.vmap(init), keys, hyper).replace(replay=None)
-    state, _, _ = ckpt.restore(abstract, None, step)
+    state, keys = restore_state(ckpt, step, cfg, env)
     t = time.perf_counter()
     eval_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, step), 7))(keys)
     out = jax.device_get(jax.jit(jax.vmap(tr.evaluate))(state, eval_keys))

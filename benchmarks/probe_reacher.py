@@ -38,7 +38,7 @@ def main(argv=None) -> int:
 
     import evaluate
     from mjx_collo import agent as agent_lib
-    from mjx_collo import checkpoint, runner, trainer
+    from mjx_collo import checkpoint, runner
     from mjx_collo import value as value_lib
     from mjx_collo import world_model as wm_lib
     from train import setup_jax
@@ -46,18 +46,13 @@ def main(argv=None) -> int:
     setup_jax()
     ck = checkpoint.Checkpointer(args.ckpt, read_only=True)
     step = ck.latest_step()
-    meta, cfg0 = ck.meta(step), ck.config(step)
+    cfg0 = ck.config(step)
     if not cfg0.env.task.startswith("reacher"):
         print(f"error: {cfg0.env.task} is not a reacher task", file=sys.stderr)
         return 2
     cfg = evaluate.eval_config(cfg0, args.overrides)
     env = runner.make_env(cfg)
-    n_runs = meta["num_runs"]
-    keys = trainer.seed_keys(cfg0, n_runs)
-    hyper = {k: np.zeros(n_runs, np.float32) for k in meta["labels"][0] if k != "seed"}
-    init = trainer.make_train(cfg0, env).init
-    abstract = jax.eval_shape(jax.vmap(init), keys, hyper).replace(replay=None)
-    state, _, _ = ck.restore(abstract, None, step)
+    state, _ = evaluate.restore_state(ck, step, cfg0, env)
     s = jax.tree.map(lambda x: x[args.seed], state)
     agent = agent_lib.make_agent(cfg, int(env.action_size))
     n, length = args.episodes, cfg.env.episode_env_steps // cfg.env.action_repeat
