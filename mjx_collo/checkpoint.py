@@ -33,13 +33,25 @@ class CheckpointError(RuntimeError):
 
 
 def all_finite(tree: Any) -> bool:
-    """True if every floating-point leaf of ``tree`` is finite (one device reduction)."""
-    leaves = [
-        x for x in jax.tree.leaves(tree) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)
-    ]
-    if not leaves:
-        return True
-    return bool(jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])))
+    """True if every floating-point leaf of ``tree`` is finite.
+
+    Checked shard by shard on the host, not as a device reduction: over a seed-sharded array that
+    reduction is a cross-device all-reduce, and with more CPU devices than cores (one device per
+    seed, ``host_devices``) XLA aborts a collective whose participants do not all arrive within
+    40 s. The processes of a multi-process run combine their answers, so all of them save or none.
+    """
+    ok = True
+    for x in jax.tree.leaves(tree):
+        shards = [s.data for s in x.addressable_shards] if isinstance(x, jax.Array) else [x]
+        for shard in shards:
+            a = np.asarray(shard)
+            if np.issubdtype(a.dtype, np.floating) and not np.isfinite(a).all():
+                ok = False
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        ok = bool(np.all(multihost_utils.process_allgather(np.asarray(ok))))
+    return ok
 
 
 def _strip_empty(tree: Any) -> Any:

@@ -1,0 +1,35 @@
+"""Checkpoints are never written with NaN/inf, and a refused save leaves the last good one."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mjx_collo import checkpoint, config
+
+
+def _state(w):
+    return {"w": jnp.asarray(w, jnp.float32), "count": jnp.int32(3), "empty": jnp.zeros((0,))}
+
+
+def test_all_finite_checks_every_floating_leaf():
+    assert checkpoint.all_finite(_state([1.0, 2.0]))
+    assert not checkpoint.all_finite(_state([1.0, np.nan]))
+    assert not checkpoint.all_finite({"a": _state([1.0]), "b": np.array([np.inf])})
+    assert checkpoint.all_finite({"ints": np.array([1, 2]), "none": None})
+
+
+def test_a_state_with_nan_is_not_saved_and_the_last_good_one_stays(tmp_path):
+    cfg = config.load(task="reacher_easy", presets=["debug"])
+    ck = checkpoint.Checkpointer(tmp_path / "checkpoints", keep=3)
+    assert ck.save(10, _state([1.0, 2.0]), None, cfg, {"env_steps": 10})
+    ck.wait()
+    assert not ck.save(20, _state([1.0, np.inf]), None, cfg, {"env_steps": 20})
+    ck.wait()
+    assert ck.latest_step() == 10
+    abstract = jax.eval_shape(lambda: _state([0.0, 0.0]))
+    train, _, meta = ck.restore(abstract)
+    np.testing.assert_array_equal(np.asarray(train["w"]), [1.0, 2.0])
+    assert meta["env_steps"] == 10
+    ck.close()
