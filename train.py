@@ -10,6 +10,8 @@ import os
 import sys
 from pathlib import Path
 
+from mjx_collo import host_devices
+
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__)
@@ -90,8 +92,20 @@ def default_run_dir(
     return Path("runs") / "-".join(parts)
 
 
+def num_runs(args: argparse.Namespace) -> int:
+    """Seeds x swept values, counted from the raw ``--sweep`` text (validated later, by
+    ``config.parse_sweep``; this count only sizes the CPU devices before JAX starts)."""
+    n = max(args.seeds, 1)
+    for item in (args.sweep or "").replace(";", " ").split():
+        values = [v for v in item.partition("=")[2].split(",") if v.strip()]
+        n *= max(len(values), 1)
+    return n
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
+    if not args.distributed:  # a distributed run's devices are its processes' own
+        host_devices.configure(num_runs(args))
     try:
         setup_distributed(args)
     except ValueError as e:
@@ -137,6 +151,12 @@ def main(argv: list[str] | None = None) -> int:
         r = runner.Run(
             cfg, env, run_dir, num_seeds=args.seeds, sweep=sweep, progress=not args.no_progress
         )
+        if r.sharding is not None:
+            devices = r.sharding.mesh.devices
+            print(
+                f"seed axis sharded over {devices.size} {devices.flat[0].platform} devices "
+                f"({r.num_runs // devices.size} run(s) each)"
+            )
         result = r.run()
         r.close()
     except (CheckpointError, config.ConfigError) as e:

@@ -12,7 +12,9 @@ measured chunks the time of a whole run is
 
     compile + init + prefill chunks + (steps - prefill) / 1000 x steady chunk + evaluations,
 
-with the evaluation time measured once per method (after its compile). Launch -> first update is
+with the evaluation time measured once per method and seed count (after its compile). Seed counts
+run as ``make train SEEDS=n`` does: one CPU device per seed (``mjx_collo.host_devices``), unless
+``XLA_FLAGS`` sets the device count. Launch -> first update is
 measured from process start (imports included) to the end of the chunk holding the first update,
 cold (empty cache) and warm (a second launch with the cache the first one filled).
 """
@@ -39,6 +41,9 @@ STEADY_CHUNK = 1000
 def worker(spec: dict) -> dict:
     """Runs in a child process: prefill + ``spec['steady']`` steady chunks of one config."""
     sys.path.insert(0, str(ROOT))
+    from mjx_collo import host_devices
+
+    host_devices.configure(spec["seeds"])  # as train.py does, before JAX starts
     import jax
 
     jax.config.update("jax_compilation_cache_dir", spec["cache"])
@@ -71,6 +76,7 @@ def worker(spec: dict) -> dict:
         "prefill": cfg.run.prefill,
         "eval_every": cfg.run.eval_every,
         "eval_episodes": cfg.run.eval_episodes,
+        "devices": jax.device_count(),
         "log": logs,
     }
     if spec.get("eval"):
@@ -81,7 +87,25 @@ def worker(spec: dict) -> dict:
         r.evaluate(r.state, 1)
         out["eval_s"] = time.perf_counter() - t
     r.close()
+    out["matmul_gflops"] = matmul_gflops()
     return out
+
+
+def matmul_gflops() -> float:
+    """GFLOP/s of a 1024^3 float32 matmul (best of 5): the machine's speed, so that timings taken
+    on different machines can be compared."""
+    import jax
+    import jax.numpy as jnp
+
+    a = jnp.ones((1024, 1024), jnp.float32)
+    f = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(f(a))
+    best = float("inf")
+    for _ in range(5):
+        t = time.perf_counter()
+        jax.block_until_ready(f(a))
+        best = min(best, time.perf_counter() - t)
+    return 2 * 1024**3 / best / 1e9
 
 
 def launch(spec: dict) -> dict:
@@ -130,6 +154,8 @@ def main() -> None:
         print(json.dumps(worker(json.loads(args.worker))))
         return
 
+    # Read before the first worker: afterwards the average counts the benchmark's own threads.
+    load = os.getloadavg()[0]
     methods = args.methods.split(",")
     seed_counts = [int(s) for s in args.seeds.split(",")]
     tmp = Path(tempfile.mkdtemp(prefix="bench_train_"))
@@ -167,22 +193,22 @@ def main() -> None:
     base["launch_to_first_update_warm_s"] = warm["launch_to_first_update_s"]
     base["compile_warm_s"] = warm["compile_s"]
 
-    eval_s = base["eval_s"]
     for n in seed_counts:
         if n == 1:
             m = base
         else:
             print(f"... {base['method']} x{n} seeds", flush=True)
-            m = launch(spec(base["method"], n, f"seeds-{n}", str(tmp / f"cache-s{n}"), False))
+            m = launch(spec(base["method"], n, f"seeds-{n}", str(tmp / f"cache-s{n}"), True))
         steady = sum(m["chunk_s"][m["prefill_chunks"] :])
         seeds_rows.append(
             {
                 "seeds": n,
                 "steady_chunk_s": steady,
                 "compile_s": m["compile_s"],
+                "devices": m["devices"],
                 "env_steps_per_s_per_seed": STEADY_CHUNK / steady,
-                # evaluation of n seeds is vmapped too: scale the 1-seed measurement by n (upper bound)
-                "estimated_run_s": estimate(m, args.steps, eval_s * n),
+                "eval_s": m["eval_s"],
+                "estimated_run_s": estimate(m, args.steps, m["eval_s"]),
             }
         )
 
@@ -201,12 +227,16 @@ def main() -> None:
         f"launch -> first update, warm cache: {base['launch_to_first_update_warm_s']:.0f}s "
         f"(chunk compile {base['compile_warm_s']:.1f}s)"
     )
-    print(f"\n{'seeds':>5s} {'steady chunk':>13s} {'est. run':>9s} {'x of 1 seed':>12s}")
+    print(
+        f"\n{'seeds':>5s} {'devices':>8s} {'steady chunk':>13s} {'eval':>6s} {'est. run':>9s} "
+        f"{'x of 1 seed':>12s}"
+    )
     one = seeds_rows[0]["estimated_run_s"]
     for s in seeds_rows:
         s["ratio_to_one_seed"] = s["estimated_run_s"] / one
         print(
-            f"{s['seeds']:5d} {s['steady_chunk_s']:12.1f}s {s['estimated_run_s'] / 60:7.1f}min "
+            f"{s['seeds']:5d} {s['devices']:8d} {s['steady_chunk_s']:12.1f}s {s['eval_s']:5.0f}s "
+            f"{s['estimated_run_s'] / 60:7.1f}min "
             f"{s['ratio_to_one_seed']:11.2f}x"
         )
     targets = {
@@ -219,9 +249,8 @@ def main() -> None:
     }
     verdict = {True: "met", False: "NOT met", None: "not measured"}
     print("targets:", ", ".join(f"{k}: {verdict[v]}" for k, v in targets.items()))
-    load = os.getloadavg()[0]
-    if load > (os.cpu_count() or 1) + 0.5:
-        print(f"warning: load average {load:.1f} on {os.cpu_count()} CPUs: timings are contended")
+    if load > 1.0:
+        print(f"warning: load average {load:.1f} before the benchmark: timings may be contended")
     result = {
         "task": args.task,
         "steps": args.steps,
@@ -232,7 +261,8 @@ def main() -> None:
         "machine": {
             "cpus": os.cpu_count(),
             "platform": platform.platform(),
-            "load_average_1min": load,
+            "load_average_1min_before": load,
+            "matmul_gflops": base["matmul_gflops"],
         },
     }
     out = Path(args.out)

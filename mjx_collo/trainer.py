@@ -514,22 +514,49 @@ def over_seeds(f: Callable, in_axes: tuple[int | None, ...]) -> Callable:
 
 
 def batched(trainer: Trainer, sharding=None):
-    """jit(vmap) of init / chunk / evaluate over the seed axis (state donated into chunk)."""
+    """jit(vmap) of init / chunk / evaluate over the seed axis (state donated into chunk).
+
+    With a seed sharding the functions run under ``shard_map``: each device runs its own block of
+    seeds through :func:`over_seeds`, so a device holding one seed runs it unbatched. Seeds never
+    communicate, so the program has no collectives. Under plain ``jit`` sharding propagation
+    would keep the seed axis as a batch dimension of size 1 on every device: the slow batched
+    dot that :func:`over_seeds` avoids (one default planning call, 2 seeds on 2 forced CPU
+    devices: 557 ms sharded with jit, 320 ms with shard_map, 406 ms on one device).
+    """
     init = over_seeds(trainer.init, (0, 0))
     chunk = over_seeds(trainer.chunk, (0, None))
     evaluate = over_seeds(trainer.evaluate, (0, 0))
     if sharding is None:
         return (jax.jit(init), jax.jit(chunk, donate_argnums=0), jax.jit(evaluate))
-    rep = replicated(sharding)
+    from jax.sharding import PartitionSpec
+
+    seed, rep = PartitionSpec("seed"), PartitionSpec()
+
+    def per_device(f, in_specs, out_specs):
+        # check_vma=False: the per-seed code's loops carry values the checker cannot type
+        # (fresh constants next to per-device data); nothing here is reduced across devices.
+        return jax.shard_map(
+            f, mesh=sharding.mesh, in_specs=in_specs, out_specs=out_specs, check_vma=False
+        )
+
+    rep_sharding = replicated(sharding)
     return (
-        jax.jit(init, in_shardings=(sharding, sharding), out_shardings=sharding),
         jax.jit(
-            chunk,
-            in_shardings=(sharding, rep),
+            per_device(init, (seed, seed), seed),
+            in_shardings=(sharding, sharding),
+            out_shardings=sharding,
+        ),
+        jax.jit(
+            per_device(chunk, (seed, rep), (seed, seed)),
+            in_shardings=(sharding, rep_sharding),
             out_shardings=(sharding, sharding),
             donate_argnums=0,
         ),
-        jax.jit(evaluate, in_shardings=(sharding, sharding), out_shardings=sharding),
+        jax.jit(
+            per_device(evaluate, (seed, seed), seed),
+            in_shardings=(sharding, sharding),
+            out_shardings=sharding,
+        ),
     )
 
 

@@ -90,3 +90,40 @@ def test_two_process_distributed_run_trains(tmp_path):
     assert {r["seed"] for r in rows} == {0, 1}
     assert any("wm/loss/total" in r for r in rows)
     assert (run / "checkpoints" / "400").is_dir()
+
+
+def test_seeds_run_on_one_cpu_device_each_and_save(tmp_path):
+    """``train.py --seeds 4`` splits the 2-core host into 4 CPU devices (host_devices), runs one
+    seed per device and writes its checkpoint. More devices than cores: the pre-save NaN check
+    once reduced over the sharded state on the devices, and XLA aborted that all-reduce when a
+    participant did not arrive within 40 s; the check now runs on the host."""
+    run = tmp_path / "four"
+    env = _env()
+    env.pop("XLA_FLAGS", None)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            "--env",
+            "reacher",
+            "--preset",
+            "debug",
+            "--seeds",
+            "4",
+            "--steps",
+            "800",
+            "--run",
+            str(run),
+            "--no-progress",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-2000:]}\nstderr:\n{proc.stderr[-3000:]}"
+    assert "seed axis sharded over 4 cpu devices (1 run(s) each)" in proc.stdout
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert {r["seed"] for r in rows} == {0, 1, 2, 3}
+    assert (run / "checkpoints" / "800").is_dir()

@@ -1,0 +1,43 @@
+"""One XLA CPU device per seed, so that the seeds of a run execute in parallel on a multi-core host.
+
+XLA's CPU backend shows the whole host as a single device. Vmapped seeds then run as one stream of
+batched matmuls (one weight set per seed), and one seed's small planning matmuls keep only about
+1.3 of 2 cores busy (one default planning call: 233 ms on 2 cores, 303 ms pinned to one).
+``--xla_force_host_platform_device_count=N`` splits the host into N devices. The trainer then
+shards the seed axis over them (``trainer.batched``: ``shard_map``, one unbatched seed per
+device), and the seeds' programs run side by side on the cores.
+
+Must run before JAX initialises its backends. Only the CPU platform reads the flag: on a GPU or
+TPU host the accelerators stay the devices. An ``XLA_FLAGS`` that already sets the count wins.
+Imports nothing from JAX.
+"""
+
+from __future__ import annotations
+
+import os
+
+FLAG = "xla_force_host_platform_device_count"
+MAX_DEVICES = 16  # more CPU devices than this only add threads
+
+
+def device_count_for(num_runs: int, max_devices: int = MAX_DEVICES) -> int:
+    """Host devices for ``num_runs`` runs: one per run, or the largest divisor of ``num_runs``
+    that is at most ``max_devices`` (the seed axis must split evenly over the devices)."""
+    if num_runs < 1:
+        raise ValueError(f"num_runs must be >= 1, got {num_runs}")
+    return max(d for d in range(1, min(num_runs, max_devices) + 1) if num_runs % d == 0)
+
+
+def configure(num_runs: int, environ: dict[str, str] | None = None) -> int | None:
+    """Add the device-count flag for ``num_runs`` to ``XLA_FLAGS`` unless it is set already.
+
+    Returns the device count it set, or None when it left ``XLA_FLAGS`` alone (one run, or the
+    user's own count).
+    """
+    env = os.environ if environ is None else environ
+    flags = env.get("XLA_FLAGS", "")
+    n = device_count_for(num_runs)
+    if n == 1 or FLAG in flags:
+        return None
+    env["XLA_FLAGS"] = f"{flags} --{FLAG}={n}".strip()
+    return n

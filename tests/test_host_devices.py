@@ -1,0 +1,40 @@
+"""CPU device split for multi-seed runs (mjx_collo/host_devices.py, train.num_runs)."""
+
+from __future__ import annotations
+
+import pytest
+
+import train
+from mjx_collo import host_devices
+
+
+@pytest.mark.parametrize(
+    ("runs", "devices"), [(1, 1), (2, 2), (3, 3), (4, 4), (16, 16), (18, 9), (17, 1), (32, 16)]
+)
+def test_one_device_per_run_or_the_largest_divisor_that_fits(runs, devices):
+    assert host_devices.device_count_for(runs) == devices
+
+
+def test_configure_adds_the_flag_and_keeps_other_flags():
+    env = {"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
+    assert host_devices.configure(3, env) == 3
+    assert env["XLA_FLAGS"] == (
+        "--xla_cpu_enable_fast_math=false --xla_force_host_platform_device_count=3"
+    )
+
+
+def test_configure_leaves_one_run_and_the_users_own_count_alone():
+    env: dict[str, str] = {}
+    assert host_devices.configure(1, env) is None
+    assert env == {}
+    user = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    assert host_devices.configure(4, user) is None
+    assert user["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
+
+
+def test_run_count_is_seeds_times_swept_values():
+    args = train.parse(
+        ["--seeds", "3", "--sweep", "value.gamma=0.9,0.99;wm.optim.lr=1e-4,3e-4,6e-4"]
+    )
+    assert train.num_runs(args) == 18
+    assert train.num_runs(train.parse(["--seeds", "2"])) == 2
