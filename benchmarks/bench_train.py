@@ -87,25 +87,10 @@ def worker(spec: dict) -> dict:
         r.evaluate(r.state, 1)
         out["eval_s"] = time.perf_counter() - t
     r.close()
-    out["matmul_gflops"] = matmul_gflops()
+    from bench_planner import matmul_peak  # this script's directory is on sys.path
+
+    out["matmul_gflops"] = matmul_peak()  # the machine's speed, to compare timings across VMs
     return out
-
-
-def matmul_gflops() -> float:
-    """GFLOP/s of a 1024^3 float32 matmul (best of 5): the machine's speed, so that timings taken
-    on different machines can be compared."""
-    import jax
-    import jax.numpy as jnp
-
-    a = jnp.ones((1024, 1024), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    jax.block_until_ready(f(a))
-    best = float("inf")
-    for _ in range(5):
-        t = time.perf_counter()
-        jax.block_until_ready(f(a))
-        best = min(best, time.perf_counter() - t)
-    return 2 * 1024**3 / best / 1e9
 
 
 def launch(spec: dict) -> dict:

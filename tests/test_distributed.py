@@ -40,6 +40,16 @@ def test_sharded_seed_axis_equals_unsharded():
     assert result["max_abs_diff"] <= 1e-5, result
 
 
+def _train_debug(seeds: int, steps: int, run: Path) -> list[str]:
+    """``train.py`` on reacher with the debug preset (the command line without extra flags)."""
+    return [
+        sys.executable,
+        str(ROOT / "train.py"),
+        *("--env", "reacher", "--preset", "debug", "--seeds", str(seeds), "--steps", str(steps)),
+        *("--run", str(run), "--no-progress"),
+    ]
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -53,19 +63,7 @@ def test_two_process_distributed_run_trains(tmp_path):
     procs = [
         subprocess.Popen(
             [
-                sys.executable,
-                str(ROOT / "train.py"),
-                "--env",
-                "reacher",
-                "--preset",
-                "debug",
-                "--seeds",
-                "2",
-                "--steps",
-                "400",
-                "--run",
-                str(run),
-                "--no-progress",
+                *_train_debug(seeds=2, steps=400, run=run),
                 "--distributed",
                 "--coordinator",
                 f"127.0.0.1:{port}",
@@ -101,21 +99,7 @@ def test_seeds_run_on_one_cpu_device_each_and_save(tmp_path):
     env = _env()
     env.pop("XLA_FLAGS", None)
     proc = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "train.py"),
-            "--env",
-            "reacher",
-            "--preset",
-            "debug",
-            "--seeds",
-            "4",
-            "--steps",
-            "800",
-            "--run",
-            str(run),
-            "--no-progress",
-        ],
+        _train_debug(seeds=4, steps=800, run=run),
         env=env,
         capture_output=True,
         text=True,
