@@ -15,6 +15,7 @@ Imports nothing from JAX.
 from __future__ import annotations
 
 import os
+import sys
 
 FLAG = "xla_force_host_platform_device_count"
 MAX_DEVICES = 16  # more CPU devices than this only add threads
@@ -31,9 +32,12 @@ def device_count_for(num_runs: int, max_devices: int = MAX_DEVICES) -> int:
 def configure(num_runs: int, environ: dict[str, str] | None = None) -> int | None:
     """Add the device-count flag for ``num_runs`` to ``XLA_FLAGS`` unless it is set already.
 
-    Returns the device count it set, or None when it left ``XLA_FLAGS`` alone (one run, or the
-    user's own count).
+    Returns the device count it set, or None when it left ``XLA_FLAGS`` alone (one run, the
+    user's own count, or JAX already imported in this process: the flag would have no effect
+    here and would only leak into subprocesses, e.g. when tests call ``train.main``).
     """
+    if environ is None and "jax" in sys.modules:
+        return None
     env = os.environ if environ is None else environ
     flags = env.get("XLA_FLAGS", "")
     n = device_count_for(num_runs)

@@ -38,3 +38,12 @@ def test_run_count_is_seeds_times_swept_values():
     )
     assert train.num_runs(args) == 18
     assert train.num_runs(train.parse(["--seeds", "2"])) == 2
+
+
+def test_configure_does_nothing_once_jax_is_imported(monkeypatch):
+    # pytest has imported JAX: the flag could not take effect and would leak into subprocesses
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert host_devices.configure(4) is None
+    import os
+
+    assert "XLA_FLAGS" not in os.environ
