@@ -61,6 +61,9 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
         NO_VALUE + ["planner.iters=300", "planner.adam_lr=0.01"],
     ),
     "adam K=200 lr=0.015 warm": ("collodreamer", NO_VALUE + ["planner.warm_start=true"]),
+    # A tighter dynamics tolerance plans worse: the relaxation is what lets Adam move.
+    "adam K=200 dyn_eps=1e-3": ("collodreamer", NO_VALUE + ["planner.dyn_eps=1e-3"]),
+    "adam K=200 dyn_eps=1e-4": ("collodreamer", NO_VALUE + ["planner.dyn_eps=1e-4"]),
     # Half the iterations at any step size plans far worse: the multipliers tighten per iteration.
     "adam K=100 lr=0.03": (
         "collodreamer",
@@ -73,6 +76,19 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "gauss_newton K=30": (
         "collodreamer",
         NO_VALUE + ["planner.solver=gauss_newton", "planner.iters=30"],
+    ),
+    # Matrix-free Gauss-Newton: 10 conjugate-gradient steps per iteration instead of the exact solve.
+    "cg K=30": ("collodreamer", NO_VALUE + ["planner.solver=cg", "planner.iters=30"]),
+    "cg K=15": ("collodreamer", NO_VALUE + ["planner.solver=cg", "planner.iters=15"]),
+    # Shooting refinement: Adam on the actions through the model rollout after collocation.
+    "adam K=200 + refine 50": ("collodreamer", NO_VALUE + ["planner.refine_iters=50"]),
+    "refine 100 only (shooting GD)": (
+        "collodreamer",
+        NO_VALUE + ["planner.iters=0", "planner.refine_iters=100"],
+    ),
+    "adam K=100 + refine 50": (
+        "collodreamer",
+        NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.03", "planner.refine_iters=50"],
     ),
     "cem 300x5": (
         "cem",

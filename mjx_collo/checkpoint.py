@@ -143,7 +143,7 @@ class Checkpointer:
     def config(self, step: int | None = None) -> Config:
         tree = self.meta(step)["config"]
         try:
-            return config_lib.build(tree)
+            return config_lib.build(config_lib.complete_saved(tree))
         except ConfigError as e:
             raise CheckpointError(f"checkpoint config no longer validates: {e}") from None
 

@@ -165,6 +165,8 @@ class PlannerConfig(Section):
     adam_lr: float
     adam_decay: float
     adam_b2: float
+    refine_iters: int
+    refine_lr: float
     gamma: float
     warm_start: bool
     init: Literal["rollout", "random"]
@@ -301,6 +303,28 @@ def _overlay(kind: str, name: str, required: bool) -> dict[str, Any]:
             )
         return {}
     return _read_yaml(path)
+
+
+# Keys added after FORMAT_VERSION 1 was written, with the value that reproduces how configs
+# without them behaved. A checkpoint's stored config is completed with these before validation, so
+# older runs still evaluate and resume (under a default that differs, resuming names the change).
+ADDED_KEYS: dict[str, Any] = {
+    "planner.refine_iters": 0,
+    "planner.refine_lr": 0.05,
+}
+
+
+def complete_saved(tree: Mapping[str, Any]) -> dict[str, Any]:
+    """A stored config tree with :data:`ADDED_KEYS` filled in where it lacks them."""
+    out = deep_merge({}, tree)
+    for dotted, value in ADDED_KEYS.items():
+        path = dotted.split(".")
+        node: Any = out
+        for p in path[:-1]:
+            node = node.get(p) if isinstance(node, dict) else None
+        if isinstance(node, dict) and path[-1] not in node:
+            node[path[-1]] = value
+    return out
 
 
 def build(tree: Mapping[str, Any]) -> Config:

@@ -4,7 +4,9 @@
 
 * ``latco`` / ``collodreamer``: latent collocation (ALGORITHM.md §3, §4.1) with the primal solver
   ``planner.solver`` (``gauss_newton`` = exact LatCo, ``cg`` = matrix-free GN, ``adam``);
-  ColloDreamer adds the discounted rewards and the frozen-value bootstrap;
+  ColloDreamer adds the discounted rewards and the frozen-value bootstrap; optionally
+  (``planner.refine_iters``, off by default) the actions are then refined by Adam through the
+  model rollout (shooting), see :func:`mjx_collo.planners.collocation.refine`;
 * ``cem`` / ``mppi`` / ``mppi_value``: shooting baselines (§5).
 
 Default solver (``adam``, 200 cold-started iterations at lr 0.015): chosen by plan quality per

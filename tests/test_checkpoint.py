@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from mjx_collo import checkpoint, config
 
@@ -32,4 +33,24 @@ def test_a_state_with_nan_is_not_saved_and_the_last_good_one_stays(tmp_path):
     train, _, meta = ck.restore(abstract)
     np.testing.assert_array_equal(np.asarray(train["w"]), [1.0, 2.0])
     assert meta["env_steps"] == 10
+    ck.close()
+
+
+def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
+    """Runs saved before ``planner.refine_iters`` existed must evaluate and resume: their stored
+    config gets the value that reproduces how they planned (no refinement)."""
+    cfg = config.load(task="reacher_easy", presets=["debug"], overrides=["planner.refine_iters=7"])
+    ck = checkpoint.Checkpointer(tmp_path / "checkpoints", keep=3)
+    assert ck.save(10, _state([1.0]), None, cfg, {"env_steps": 10})
+    ck.wait()
+    old = config.to_dict(cfg)
+    for key in config.ADDED_KEYS:
+        section, name = key.split(".")
+        del old[section][name]
+    with pytest.raises(config.ConfigError, match="refine_iters"):
+        config.build(old)  # what an old stored config meets without the completion
+    saved = config.complete_saved(old)
+    assert config.build(saved).planner.refine_iters == 0
+    assert config.diff(config.build(saved), cfg) == ["planner.refine_iters: 0 -> 7"]
+    assert ck.config(10).planner.refine_iters == 7  # a config that has the key keeps its value
     ck.close()

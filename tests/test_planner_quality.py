@@ -25,3 +25,16 @@ def test_default_collocation_plans_on_trained_model():
         "old", "collodreamer", bpq.CONFIGS["adam K=30 lr=0.05 warm (old default)"][1], params, ctxs
     )
     assert old["shadow_return"] < 1.5, "the fixture no longer separates a planner that fails"
+
+
+def test_shooting_refinement_improves_collocation_on_trained_model():
+    """Adam on the actions through the model rollout after collocation (``planner.refine_iters``):
+    the collocation plan's own return is read off latents that violate the dynamics, so its actions
+    leave model reward on the table (default 4.14; K=100 + 50 refinement steps 14.2, measured)."""
+    base = bpq.load_cfg("collodreamer", bpq.NO_VALUE)
+    params, replay = bpq.load_params(base, bpq.FIXTURE)
+    ctxs = bpq.contexts(base, params, replay)
+    name = "adam K=100 + refine 50"
+    row = bpq.model_section(name, "collodreamer", bpq.CONFIGS[name][1], params, ctxs)
+    assert row["shadow_return"] > 10.0, row
+    assert row["dyn_viol"] < 1e-6, "a refined plan is the rollout of its actions"

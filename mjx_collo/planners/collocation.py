@@ -13,6 +13,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import optax
 from flax import struct
 
 from mjx_collo.config import Config
@@ -164,6 +165,8 @@ def optimize(
 
     init = (plan, solver_state, jnp.asarray(-1, jnp.int32), inner_state)
     plan, _, last_bad, inner_state = jax.lax.fori_loop(0, pc.iters, body, init, unroll=unroll)
+    if pc.refine_iters > 0:
+        plan = refine(cfg, prob, plan, unroll)
     metrics = plan_metrics(prob, plan, pc.dyn_eps, pc.act_eps)
     # Iterations to the violation threshold: steps after which every iterate (and the final plan)
     # met it, i.e. 1 + the last infeasible iterate; 0 if all were feasible, K + 1 if the final plan
@@ -172,6 +175,35 @@ def optimize(
     steps = jnp.where(final_ok, last_bad + 1, pc.iters + 1)
     metrics["iters_to_feasible"] = steps.astype(jnp.float32)
     return plan, metrics, inner_state
+
+
+def refine(cfg: Config, prob: Problem, plan: PlanState, unroll: bool = False) -> PlanState:
+    """``planner.refine_iters`` Adam steps on the actions alone, maximising the objective J of
+    their model rollout (shooting), each projected onto [-1, 1]; the latents become that rollout.
+
+    The collocation plan's return is read off latents that violate the dynamics by up to
+    ``dyn_eps`` per step, and its actions are only pushed toward the bounds by multipliers; this
+    polishes the actions that will be executed against the feasible trajectory they produce.
+    """
+    pc = cfg.planner
+    tx = optax.adam(pc.refine_lr, b1=0.9, b2=pc.adam_b2)
+
+    def neg_j(a):
+        zs = rollout(prob.model, prob.params, prob.ctx, a)
+        rs = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, zs)
+        return -discounted_return(rs, obj.bootstrap_value(prob, zs[-1]), prob.gamma, prob.bootstrap)
+
+    def body(_, carry):
+        a, s = carry
+        g = jax.grad(neg_j)(a)
+        u, s = tx.update(g, s)
+        na = jnp.clip(optax.apply_updates(a, u), -1.0, 1.0)
+        ok = jnp.all(jnp.isfinite(na))
+        return jnp.where(ok, na, a), s
+
+    a0 = jnp.clip(plan.a, -1.0, 1.0)
+    a, _ = jax.lax.fori_loop(0, pc.refine_iters, body, (a0, tx.init(a0)), unroll=unroll)
+    return plan.replace(a=a, z=rollout(prob.model, prob.params, prob.ctx, a))
 
 
 def plan_metrics(

@@ -1,0 +1,72 @@
+"""Does the reward head read the planner's latents as well as the ones it was trained on?
+
+``python benchmarks/probe_plan_features.py [--fixture benchmarks/fixtures/cheetah_cem_20k.npz]``
+
+The categorical RSSM trains its reward head on features ``[one-hot posterior sample, h]``. The
+reduced-space collocation planner feeds it ``[prior probabilities m(h), h]`` instead (soft
+probabilities: samples or argmax have no gradient; ALGORITHM.md pitfall 5). If the head did not
+generalise to soft inputs, plans would optimise a reward the model never learned. This filters the
+fixture's replay rows with its world model and compares the reward head's error against the logged
+rewards under the three features of the same states. Prints a table; writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_plan_quality import FIXTURE, load_cfg, load_params  # noqa: E402
+
+from mjx_collo import world_model as wm  # noqa: E402
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--fixture", type=Path, default=FIXTURE)
+    args = p.parse_args(argv)
+    cfg = load_cfg("cem", [])
+    params, rep = load_params(cfg, args.fixture)
+
+    def filt(state, x):
+        o, a, f, k = x
+        post, _ = wm.obs_step(cfg.wm, params, state, a[None], o[None], f[None], k)
+        return post, post
+
+    xs = tuple(jnp.asarray(rep[k]) for k in ("obs", "action", "is_first"))
+    keys = jax.random.split(jax.random.PRNGKey(3), len(rep["obs"]))
+    init = wm.initial_state(cfg.wm, (1,))
+    _, posts = jax.jit(lambda: jax.lax.scan(filt, init, xs + (keys,)))()
+    posts = jax.tree.map(lambda x: x[:, 0], posts)
+    reward = np.asarray(rep["reward"])
+    prior = wm.prior_mean(cfg.wm, params, posts.deter)
+    feats = {
+        "posterior sample (training)": wm.get_feat(posts),
+        "posterior probabilities": jnp.concatenate(
+            [wm.dist_mean(cfg.wm, posts.stats), posts.deter], -1
+        ),
+        "prior probabilities m(h) (planner)": jnp.concatenate([prior, posts.deter], -1),
+    }
+    print(f"{len(reward)} replay rows, true mean reward {reward.mean():.3f}")
+    print(f"{'feature':<36} {'reward mse':>10} {'corr':>6} {'mean pred':>9}")
+    for name, f in feats.items():
+        pred = np.asarray(wm.reward(cfg.wm, params, f))
+        mse = np.mean((pred - reward) ** 2)
+        corr = np.corrcoef(pred, reward)[0, 1]
+        print(f"{name:<36} {mse:10.4f} {corr:6.3f} {pred.mean():9.3f}")
+    probs = np.asarray(prior).reshape(len(reward), cfg.wm.stoch, cfg.wm.classes)
+    ent = -np.sum(probs * np.log(probs + 1e-8), -1).mean()
+    print(f"prior entropy per group: {ent:.2f} nats (uniform: {np.log(cfg.wm.classes):.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
