@@ -123,8 +123,8 @@ def load_params(cfg: config.Config, fixture: Path) -> tuple[dict, dict]:
     return jax.tree_util.tree_unflatten(treedef, arrays), replay
 
 
-def contexts(cfg: config.Config, params, replay: dict, n: int = 16):
-    """Posterior states at ``n`` rows spread over the later part of the replay slice."""
+def posteriors(cfg: config.Config, params, replay: dict):
+    """Posterior state of every replay row, filtered along the replay slice (leading axis: rows)."""
     rows = len(replay["obs"])
 
     def filt(state, x):
@@ -137,8 +137,14 @@ def contexts(cfg: config.Config, params, replay: dict, n: int = 16):
     _, posts = jax.jit(
         lambda: jax.lax.scan(filt, wm_lib.initial_state(cfg.wm, (1,)), xs + (keys,))
     )()
+    return jax.tree.map(lambda x: x[:, 0], posts)
+
+
+def contexts(cfg: config.Config, params, replay: dict, n: int = 16):
+    """Posterior states at ``n`` rows spread over the later part of the replay slice."""
+    rows = len(replay["obs"])
     idx = np.linspace(rows // 3, rows - 1, n).astype(int)
-    return jax.tree.map(lambda x: x[idx, 0], posts)
+    return jax.tree.map(lambda x: x[idx], posteriors(cfg, params, replay))
 
 
 def model_section(name: str, method: str, overrides: list[str], params, ctxs) -> dict:

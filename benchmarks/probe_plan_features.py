@@ -16,7 +16,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -24,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_plan_quality import FIXTURE, load_cfg, load_params  # noqa: E402
+from bench_plan_quality import FIXTURE, load_cfg, load_params, posteriors  # noqa: E402
 
 from mjx_collo import world_model as wm  # noqa: E402
 
@@ -36,16 +35,7 @@ def main(argv=None) -> int:
     cfg = load_cfg("cem", [])
     params, rep = load_params(cfg, args.fixture)
 
-    def filt(state, x):
-        o, a, f, k = x
-        post, _ = wm.obs_step(cfg.wm, params, state, a[None], o[None], f[None], k)
-        return post, post
-
-    xs = tuple(jnp.asarray(rep[k]) for k in ("obs", "action", "is_first"))
-    keys = jax.random.split(jax.random.PRNGKey(3), len(rep["obs"]))
-    init = wm.initial_state(cfg.wm, (1,))
-    _, posts = jax.jit(lambda: jax.lax.scan(filt, init, xs + (keys,)))()
-    posts = jax.tree.map(lambda x: x[:, 0], posts)
+    posts = posteriors(cfg, params, rep)
     reward = np.asarray(rep["reward"])
     prior = wm.prior_mean(cfg.wm, params, posts.deter)
     feats = {

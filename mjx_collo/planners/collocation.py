@@ -188,14 +188,9 @@ def refine(cfg: Config, prob: Problem, plan: PlanState, unroll: bool = False) ->
     pc = cfg.planner
     tx = optax.adam(pc.refine_lr, b1=0.9, b2=pc.adam_b2)
 
-    def neg_j(a):
-        zs = rollout(prob.model, prob.params, prob.ctx, a)
-        rs = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, zs)
-        return -discounted_return(rs, obj.bootstrap_value(prob, zs[-1]), prob.gamma, prob.bootstrap)
-
     def body(_, carry):
         a, s = carry
-        g = jax.grad(neg_j)(a)
+        g = jax.grad(lambda x: -shadow(prob, x)[0])(a)
         u, s = tx.update(g, s)
         na = jnp.clip(optax.apply_updates(a, u), -1.0, 1.0)
         ok = jnp.all(jnp.isfinite(na))
@@ -204,6 +199,15 @@ def refine(cfg: Config, prob: Problem, plan: PlanState, unroll: bool = False) ->
     a0 = jnp.clip(plan.a, -1.0, 1.0)
     a, _ = jax.lax.fori_loop(0, pc.refine_iters, body, (a0, tx.init(a0)), unroll=unroll)
     return plan.replace(a=a, z=rollout(prob.model, prob.params, prob.ctx, a))
+
+
+def shadow(prob: Problem, a: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``(J, rewards [H], states [H, Z])`` of the feasible model rollout of actions ``a`` [H, A],
+    taken as given (the callers clip them to the bounds)."""
+    zs = rollout(prob.model, prob.params, prob.ctx, a)
+    rs = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, zs)
+    j = discounted_return(rs, obj.bootstrap_value(prob, zs[-1]), prob.gamma, prob.bootstrap)
+    return j, rs, zs
 
 
 def plan_metrics(
@@ -217,9 +221,7 @@ def plan_metrics(
     j, rewards, raw = obj.exact_terms(prob, plan.z, plan.a)
     dv = duals.dyn_violation(raw.d)
     av = duals.act_violation(plan.a)
-    zs = rollout(prob.model, prob.params, prob.ctx, jnp.clip(plan.a, -1.0, 1.0))
-    rs = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, zs)
-    vs = obj.bootstrap_value(prob, zs[-1])
+    shadow_j, rs, _ = shadow(prob, jnp.clip(plan.a, -1.0, 1.0))
     return {
         "dyn_viol": jnp.mean(dv),
         "dyn_viol_max": jnp.max(dv),
@@ -232,6 +234,6 @@ def plan_metrics(
         "plan_value": raw.val,
         "plan_return": j,
         "shadow_reward": jnp.mean(rs),
-        "shadow_return": discounted_return(rs, vs, prob.gamma, prob.bootstrap),
+        "shadow_return": shadow_j,
         "feasible": ((jnp.max(dv) <= dyn_eps) & (jnp.max(av) <= act_eps)).astype(jnp.float32),
     }
