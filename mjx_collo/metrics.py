@@ -21,9 +21,12 @@ from tqdm import tqdm
 
 PLOTS = {
     "returns.png": ("Return", ["eval/return", "train/return"]),
-    "world_model.png": ("World-model losses", ["wm/obs", "wm/reward", "wm/kl", "wm/loss"]),
+    "world_model.png": (
+        "World-model losses",
+        ["wm/loss/obs", "wm/loss/reward", "wm/kl", "wm/loss/total", "wm/err/reward_mse"],
+    ),
     "violations.png": ("Planner constraint violations", ["plan/dyn_viol", "plan/act_viol"]),
-    "value.png": ("Value / actor losses", ["value/loss", "actor/loss"]),
+    "value.png": ("Value / actor losses", ["value/loss", "value/mean", "actor/loss"]),
 }
 
 

@@ -18,7 +18,7 @@ import pytest
 
 import evaluate as eval_cli
 import train as train_cli
-from mjx_collo import config, runner, trainer
+from mjx_collo import config, metrics, runner, trainer
 
 TASK = "reacher_easy"
 
@@ -103,6 +103,11 @@ def test_run_directory_has_config_metrics_plots_checkpoints(runs, tmp_path_facto
     assert {r["seed"] for r in rows} == {0, 1}
     for name in ("returns.png", "world_model.png", "violations.png"):
         assert (d / "plots" / name).stat().st_size > 1000
+    # every panel a plot promises is a metric the run writes (a renamed key would drop it silently)
+    written = set().union(*rows)
+    for name, (_, keys) in metrics.PLOTS.items():
+        missing = {k for k in keys if not k.startswith("actor/")} - written  # actor: dreamer only
+        assert not missing, (name, missing)
     assert any((d / "tb" / "seed0").iterdir())
     steps = sorted(int(p.name) for p in (d / "checkpoints").iterdir() if p.name.isdigit())
     assert steps[-1] == 2 * cfg.run.chunk_env_steps
