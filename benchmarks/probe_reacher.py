@@ -8,7 +8,10 @@ at the start, its minimum, the first agent step with reward, and the value of th
 start and the end. The task pays reward only inside ``target + finger radius`` (0.06 on
 reacher_easy), so these separate "never goes near the target" (a model / value problem: the agent
 does not know the target pays) from "gets near but cannot stay" (a control-precision problem: e.g.
-too many actions executed open-loop). Appends a row to ``bench_results/reacher_probe.json``.
+too many actions executed open-loop). It also scores the reward head on the posterior of every
+visited state against the reward the env paid on arriving there (MSE, mean prediction per paid
+reward and per finger-to-target distance band): the planner can only chase reward the head sees.
+Appends a row to ``bench_results/reacher_probe.json``.
 """
 
 from __future__ import annotations
@@ -81,18 +84,24 @@ def main(argv=None) -> int:
                 if s.value is not None
                 else jnp.zeros((n,))
             )
+            r_pred = wm_lib.reward(cfg.wm, s.wm, feat)  # reward of arriving in this state
+            # ... and as the planner sees this state: [prior probabilities of h, h] (reduced space)
+            h = carry.post.deter
+            r_plan = wm_lib.reward(
+                cfg.wm, s.wm, jnp.concatenate([wm_lib.prior_mean(cfg.wm, s.wm, h), h], -1)
+            )
             a, carry = agent_lib.act(agent, None, carry, k_act, training=False)
             es = jax.vmap(env.step)(es, a)
             dist = jnp.linalg.norm(
                 es.obs[:, 2:4], axis=-1
             )  # obs: position 2, to_target 2, velocity 2
-            return (es, carry), (es.reward, dist, v)
+            return (es, carry), (es.reward, dist, v, r_pred, r_plan)
 
         _, out = jax.lax.scan(step_fn, (es, carry), jnp.arange(length))
         return out
 
     t0 = time.perf_counter()
-    r, d, v = (np.asarray(x) for x in jax.device_get(episodes(s, jax.random.PRNGKey(123))))
+    r, d, v, rp, rpl = (np.asarray(x) for x in jax.device_get(episodes(s, jax.random.PRNGKey(123))))
     secs = time.perf_counter() - t0
     rows = []
     for i in range(n):
@@ -114,6 +123,27 @@ def main(argv=None) -> int:
         )
     mean = float(r.sum(0).mean())
     print(f"mean return {mean:.1f} over {n} episodes ({secs:.0f}s incl. compile)")
+    # Reward head on the posterior of the state the env reward was received on arriving in:
+    # the reward of step t pairs with the posterior filtered from the observation after it.
+    true, pred, plan = r[:-1].ravel(), rp[1:].ravel(), rpl[1:].ravel()
+    head = {
+        "mse": float(np.mean((pred - true) ** 2)),
+        "mse_plan_features": float(np.mean((plan - true) ** 2)),
+    }
+    for lo, hi, name in ((-0.5, 0.5, "0"), (0.5, 1.5, "1"), (1.5, 2.5, "2")):
+        sel = (true > lo) & (true < hi)
+        if sel.any():
+            head[f"pred_when_{name}"] = float(pred[sel].mean())
+            head[f"steps_{name}"] = int(sel.sum())
+    # ... and against the finger-to-target distance of that state (the task pays inside 0.06).
+    dist = d[:-1].ravel()
+    for lo, hi in ((0.0, 0.06), (0.06, 0.1), (0.1, 0.2), (0.2, 1.0)):
+        sel = (dist >= lo) & (dist < hi)
+        if sel.any():
+            head[f"pred_at_dist_{lo}-{hi}"] = float(pred[sel].mean())
+            head[f"plan_pred_at_dist_{lo}-{hi}"] = float(plan[sel].mean())
+            head[f"true_at_dist_{lo}-{hi}"] = float(true[sel].mean())
+    print("reward head: " + ", ".join(f"{k} {v:.3g}" for k, v in head.items()))
     out = Path(args.out)
     results = json.loads(out.read_text()) if out.exists() else []
     results.append(
@@ -124,6 +154,7 @@ def main(argv=None) -> int:
             "overrides": args.overrides,
             "mean_return": mean,
             "episodes": rows,
+            "reward_head": head,
         }
     )
     out.parent.mkdir(parents=True, exist_ok=True)
