@@ -59,6 +59,7 @@ def main(argv=None) -> int:
     s = jax.tree.map(lambda x: x[args.seed], state)
     agent = agent_lib.make_agent(cfg, int(env.action_size))
     n, length = args.episodes, cfg.env.episode_env_steps // cfg.env.action_repeat
+    reduced = wm_lib.planning_fns(cfg.wm, "reduced")
 
     @jax.jit
     def episodes(s, key):
@@ -85,11 +86,8 @@ def main(argv=None) -> int:
                 else jnp.zeros((n,))
             )
             r_pred = wm_lib.reward(cfg.wm, s.wm, feat)  # reward of arriving in this state
-            # ... and as the planner sees this state: [prior probabilities of h, h] (reduced space)
-            h = carry.post.deter
-            r_plan = wm_lib.reward(
-                cfg.wm, s.wm, jnp.concatenate([wm_lib.prior_mean(cfg.wm, s.wm, h), h], -1)
-            )
+            # ... and as the planner sees this state (reduced space: [prior probabilities of h, h])
+            r_plan = reduced.reward(s.wm, carry.post.deter)
             a, carry = agent_lib.act(agent, None, carry, k_act, training=False)
             es = jax.vmap(env.step)(es, a)
             dist = jnp.linalg.norm(
