@@ -142,6 +142,13 @@ class ShootingConfig(Section):
     warm_start: bool
 
 
+class InitCEMConfig(Section):
+    samples: int
+    elites: int
+    iters: int
+    std: float
+
+
 class PlannerConfig(Section):
     kind: Literal["latco", "collodreamer", "cem", "mppi", "mppi_value", "dreamer"]
     solver: Literal["gauss_newton", "cg", "adam"]
@@ -169,8 +176,9 @@ class PlannerConfig(Section):
     refine_lr: float
     gamma: float
     warm_start: bool
-    init: Literal["rollout", "random"]
+    init: Literal["rollout", "random", "cem"]
     init_std: float
+    init_cem: InitCEMConfig
     shooting: ShootingConfig
 
 
@@ -311,6 +319,7 @@ def _overlay(kind: str, name: str, required: bool) -> dict[str, Any]:
 ADDED_KEYS: dict[str, Any] = {
     "planner.refine_iters": 0,
     "planner.refine_lr": 0.05,
+    "planner.init_cem": {"samples": 100, "elites": 10, "iters": 4, "std": 1.0},
 }
 
 

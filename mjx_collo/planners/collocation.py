@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from mjx_collo.config import Config
-from mjx_collo.planners import duals, solvers
+from mjx_collo.config import Config, ShootingConfig
+from mjx_collo.planners import duals, shooting, solvers
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
 from mjx_collo.planners.protocol import discounted_return, rollout
@@ -43,16 +43,45 @@ def reset_multipliers(cfg: Config, plan: PlanState) -> PlanState:
 
 
 def init_plan(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> PlanState:
-    """Cold plan: actions ~ N(0, init_std^2); latents rolled out under them (``planner.init:
-    rollout``, feasible start) or N(0, 1) like LatCo (``random``)."""
+    """Cold plan: actions ~ N(0, init_std^2) and latents rolled out under them (``planner.init:
+    rollout``, feasible start), or N(0, 1) latents like LatCo (``random``), or actions chosen by a
+    small CEM on the same objective J (``cem``: ``planner.init_cem``) and latents rolled out."""
     pc = cfg.planner
     ka, kz = jax.random.split(key)
-    a = pc.init_std * jax.random.normal(ka, (pc.horizon, action_dim))
+    if pc.init == "cem":
+        a = cem_actions(cfg, prob, ka, action_dim)
+    else:
+        a = pc.init_std * jax.random.normal(ka, (pc.horizon, action_dim))
     z = rollout(prob.model, prob.params, prob.ctx, a)
     if pc.init == "random":
         z = jax.random.normal(kz, z.shape, z.dtype)
     ones = jnp.ones((pc.horizon,), jnp.float32)
     return reset_multipliers(cfg, PlanState(z=z, a=a, lam=ones, nu=ones))
+
+
+def cem_actions(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> jax.Array:
+    """Mean [H, A] of ``init_cem.iters`` CEM iterations (``samples`` sequences from N(0, std^2),
+    refit to the top ``elites``) scored by the collocation objective J of their model rollouts.
+
+    Gradient collocation from random actions finds poor local optima on a trained model; starting
+    it from a cheap sampling solution gives the Lagrangian iterations a good basin to refine.
+    """
+    ic = cfg.planner.init_cem
+    shoot = ShootingConfig.model_construct(  # no validation: std may be a swept tracer
+        init_std=ic.std,
+        samples=ic.samples,
+        elites=ic.elites,
+        iters=ic.iters,
+        temperature=1.0,
+        min_std=0.0,
+        max_std=2.0,  # the CEM method's clamp
+        warm_start=False,
+    )
+    sub = cfg.model_copy(
+        update={"planner": cfg.planner.model_copy(update={"kind": "cem", "shooting": shoot})}
+    )
+    state, _ = shooting.optimize_shoot(sub, prob, shooting.init_shoot(sub, action_dim), key)
+    return jnp.clip(state.mean, -1.0, 1.0)
 
 
 def shift_plan(cfg: Config, prob: Problem, prev: PlanState, shift: int) -> PlanState:
