@@ -90,6 +90,19 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
         "collodreamer",
         NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.03", "planner.refine_iters=50"],
     ),
+    # Collocation started from a small CEM on the same objective (planner.init=cem).
+    "cem init 100x4 + adam K=50": (
+        "collodreamer",
+        NO_VALUE + ["planner.init=cem", "planner.iters=50"],
+    ),
+    "cem init 100x4 only (K=0)": (
+        "collodreamer",
+        NO_VALUE + ["planner.init=cem", "planner.iters=0"],
+    ),
+    "cem 100x4": (
+        "cem",
+        ["planner.shooting.samples=100", "planner.shooting.elites=10", "planner.shooting.iters=4"],
+    ),
     "cem 300x5": (
         "cem",
         ["planner.shooting.samples=300", "planner.shooting.elites=30", "planner.shooting.iters=5"],
