@@ -15,10 +15,10 @@ import copy
 import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 FORMAT_VERSION = 1
@@ -175,6 +175,7 @@ class PlannerConfig(Section):
     refine_iters: int
     refine_lr: float
     gamma: float
+    value_lambda: Annotated[float, Field(ge=0.0, le=1.0)]
     warm_start: bool
     init: Literal["rollout", "random", "cem"]
     init_std: float
@@ -320,6 +321,7 @@ ADDED_KEYS: dict[str, Any] = {
     "planner.refine_iters": 0,
     "planner.refine_lr": 0.05,
     "planner.init_cem": {"samples": 100, "elites": 10, "iters": 4, "std": 1.0},
+    "planner.value_lambda": 1.0,
 }
 
 

@@ -347,3 +347,50 @@ def test_cem_init_starts_collocation_in_the_better_basin():
         _cfg("latco", *common, "planner.init=cem", "planner.iters=0"), model, ctx, key, action_dim=1
     )
     assert np.all(m_start["shadow_return"] > m_near["shadow_return"] + 5.0)
+
+
+def test_lambda_return_matches_the_mixture_of_k_step_returns():
+    """G^lam = sum_{k<H} (1-lam) lam^(k-1) R_k + lam^(H-1) R_H with the k-step returns
+    R_k = sum_{j<=k} gamma^(j-1) r_j + gamma^k V(z_k); lam = 1 is the end bootstrap."""
+    from mjx_collo.planners.protocol import discounted_return, lambda_return
+
+    r = jax.random.uniform(jax.random.PRNGKey(0), (7,))
+    v = 10.0 * jax.random.uniform(jax.random.PRNGKey(1), (7,))
+    gamma, h = 0.9, 7
+    disc = gamma ** np.arange(h)
+    r_k = [float(np.sum(disc[:k] * r[:k]) + gamma**k * v[k - 1]) for k in range(1, h + 1)]
+    for lam in (0.0, 0.5, 0.95):
+        mix = (
+            sum((1 - lam) * lam ** (k - 1) * r_k[k - 1] for k in range(1, h))
+            + lam ** (h - 1) * r_k[-1]
+        )
+        np.testing.assert_allclose(lambda_return(r, v, gamma, lam), mix, rtol=1e-5)
+    np.testing.assert_allclose(
+        lambda_return(r, v, gamma, 1.0), discounted_return(r, v[-1], gamma, True), rtol=1e-6
+    )
+
+
+def test_value_lambda_plans_through_the_values_of_every_state():
+    """With value_lambda < 1 the Adam collocation still heads for the reward beyond the horizon
+    (the value of the states on the way says so), and the objective it reports is the
+    lambda-return of the plan, not the end bootstrap."""
+    model = _beyond_horizon_model()
+    common = ["planner.horizon=10", "planner.iters=400", "planner.init_std=0.1"]
+    ctx = jnp.zeros(1)
+    cfg = _cfg("collodreamer", *common, "planner.value_lambda=0.8")
+    plan, m = _solve(cfg, model, ctx, jax.random.PRNGKey(2), None, 1)
+    assert np.all(plan.z[:, -1, 0] > 0.6)
+    prob = obj.make_problem(cfg, model, None, ctx)
+    assert prob.lambda_values
+    end_only = obj.make_problem(_cfg("collodreamer", *common), model, None, ctx)
+    j_lam, _, _ = obj.exact_terms(prob, plan.z[0], plan.a[0])
+    j_end, _, _ = obj.exact_terms(end_only, plan.z[0], plan.a[0])
+    np.testing.assert_allclose(m["plan_return"][0], j_lam, rtol=1e-5)
+    assert abs(float(j_lam) - float(j_end)) > 1e-3
+
+
+def test_value_lambda_needs_the_adam_solver():
+    cfg = _cfg("collodreamer", "planner.solver=gauss_newton", "planner.value_lambda=0.9")
+    model = _beyond_horizon_model()
+    with pytest.raises(ValueError, match="value_lambda=0.9 needs planner.solver=adam"):
+        obj.make_problem(cfg, model, None, jnp.zeros(1))

@@ -20,7 +20,7 @@ from mjx_collo.config import Config, ShootingConfig
 from mjx_collo.planners import duals, shooting, solvers
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
-from mjx_collo.planners.protocol import discounted_return, rollout
+from mjx_collo.planners.protocol import rollout
 
 InnerFn = Callable[[Any, "PlanState", jax.Array], Any]
 
@@ -235,8 +235,7 @@ def shadow(prob: Problem, a: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array
     taken as given (the callers clip them to the bounds)."""
     zs = rollout(prob.model, prob.params, prob.ctx, a)
     rs = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, zs)
-    j = discounted_return(rs, obj.bootstrap_value(prob, zs[-1]), prob.gamma, prob.bootstrap)
-    return j, rs, zs
+    return obj.plan_return(prob, zs, rs)[0], rs, zs
 
 
 def plan_metrics(

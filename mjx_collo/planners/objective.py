@@ -10,7 +10,8 @@ fixed exactly. Residual rows, each scaled by LC's kappa:
   ``value.residual_scale`` is ``auto``, so that dC/dV matches gamma^H dC/dr (ColloDreamer only).
 
 The exact objective (for the ``adam`` primal and for reporting) is
-``J = sum_k gamma^(k-1) r(z_k) + gamma^H clip(V(z_H))`` and the Lagrangian
+``J = sum_k gamma^(k-1) r(z_k) + gamma^H clip(V(z_H))`` (with ``planner.value_lambda < 1``: the
+lambda-return of the plan, which reads V at every plan state) and the Lagrangian
 ``-J + sum_t lam_t s_d^2 ||d_t||^2 + sum_t nu_t s_a^2 ||max(|a_t|-1, 0)||^2``.
 """
 
@@ -23,13 +24,15 @@ import jax.numpy as jnp
 
 from mjx_collo.config import Config
 from mjx_collo.planners import duals
-from mjx_collo.planners.protocol import LatentModel, discounts
+from mjx_collo.planners.protocol import LatentModel, discounted_return, discounts, lambda_return
 
 
 class Problem(NamedTuple):
     """One planning problem: model, its params, the fixed context and the objective constants.
 
-    Float fields may be JAX tracers (swept hyperparameters); ``bootstrap`` and ``clip`` are static.
+    Float fields may be JAX tracers (swept hyperparameters); ``bootstrap``, ``clip`` and
+    ``lambda_values`` are static. ``lambda_values``: the objective is the lambda-return with
+    ``value_lambda`` (V at every plan state) instead of the end bootstrap.
     """
 
     model: LatentModel
@@ -43,6 +46,8 @@ class Problem(NamedTuple):
     value_hi: Any
     dyn_scale: Any
     act_scale: Any
+    value_lambda: Any = 1.0
+    lambda_values: bool = False
 
 
 class Raw(NamedTuple):
@@ -75,6 +80,14 @@ def make_problem(cfg: Config, model: LatentModel, params: Any, ctx: Any) -> Prob
         scale = jnp.sqrt(jnp.power(gamma, pc.horizon) / one_minus)
     else:
         scale = jnp.asarray(vc.residual_scale, jnp.float32)
+    lam = pc.value_lambda
+    lambda_values = bootstrap and not (isinstance(lam, float) and lam == 1.0)
+    if lambda_values and pc.kind in ("latco", "collodreamer") and pc.solver != "adam":
+        raise ValueError(
+            f"planner.value_lambda={lam} needs planner.solver=adam: the Gauss-Newton residuals "
+            "bootstrap the value at the plan's end only (use value_lambda=1.0 with "
+            f"solver={pc.solver})"
+        )
     return Problem(
         model=model,
         params=params,
@@ -87,6 +100,8 @@ def make_problem(cfg: Config, model: LatentModel, params: Any, ctx: Any) -> Prob
         value_hi=vc.clip_range[1],
         dyn_scale=pc.dyn_scale,
         act_scale=pc.act_scale,
+        value_lambda=lam,
+        lambda_values=lambda_values,
     )
 
 
@@ -122,6 +137,16 @@ def bootstrap_value(prob: Problem, z_last: jax.Array) -> jax.Array:
     if prob.clip:
         v = jnp.clip(v, prob.value_lo, prob.value_hi)
     return v
+
+
+def plan_return(prob: Problem, zs: jax.Array, rewards: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(J, V(z_H))`` of plan states ``zs`` [H, Z] with rewards r(z_k) [H]: the discounted reward
+    sum plus ``gamma^H V(z_H)``, or the lambda-return when ``prob.lambda_values``."""
+    if prob.lambda_values:
+        values = jax.vmap(lambda z: bootstrap_value(prob, z))(zs)
+        return lambda_return(rewards, values, prob.gamma, prob.value_lambda), values[-1]
+    v = bootstrap_value(prob, zs[-1])
+    return discounted_return(rewards, v, prob.gamma, prob.bootstrap), v
 
 
 def reward_residual(prob: Problem, z: jax.Array) -> jax.Array:
@@ -179,11 +204,7 @@ def cost(raw: Raw, w: Weights) -> jax.Array:
 def exact_terms(prob: Problem, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array, Raw]:
     """Exact objective pieces: (J [], rewards [H], raw residuals for the constraints)."""
     pred, rewards = predict_and_rewards(prob, z, a)
-    v = bootstrap_value(prob, z[-1])
-    h = z.shape[0]
-    j = jnp.sum(discounts(prob.gamma, h) * rewards)
-    if prob.bootstrap:
-        j = j + jnp.power(prob.gamma, h) * v
+    j, v = plan_return(prob, z, rewards)
     raw = Raw(d=z - pred, hinge=duals.act_hinge(a), rew=rewards, val=v)
     return j, rewards, raw
 

@@ -105,6 +105,25 @@ def discounts(gamma: jax.Array | float, horizon: int) -> jax.Array:
     return jnp.power(jnp.asarray(gamma, jnp.float32), jnp.arange(horizon, dtype=jnp.float32))
 
 
+def lambda_return(
+    rewards: jax.Array, values: jax.Array, gamma: jax.Array | float, lam: jax.Array | float
+) -> jax.Array:
+    """Dreamer's lambda-return of a plan from its start: ``G_H = V(z_H)``,
+    ``G_k = r_{k+1} + gamma ((1 - lam) V(z_{k+1}) + lam G_{k+1})``; returns ``G_0``.
+
+    rewards, values: [H], r(z_k) and V(z_k) for k = 1..H. ``lam = 1`` is
+    ``sum_k gamma^(k-1) r_k + gamma^H V(z_H)``; smaller ``lam`` leans on the value of the states
+    near the start, where it was trained, rather than only on the plan's far end.
+    """
+
+    def body(g, x):
+        r, v = x
+        return r + gamma * ((1.0 - lam) * v + lam * g), None
+
+    g, _ = jax.lax.scan(body, values[-1], (rewards, values), reverse=True)
+    return g
+
+
 def discounted_return(
     rewards: jax.Array, last_value: jax.Array, gamma: jax.Array | float, bootstrap: bool
 ) -> jax.Array:

@@ -19,7 +19,7 @@ from flax import struct
 from mjx_collo.config import Config
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
-from mjx_collo.planners.protocol import discounted_return, rollout
+from mjx_collo.planners.protocol import rollout
 
 
 @struct.dataclass
@@ -51,7 +51,7 @@ def sequence_return(prob: Problem, actions: jax.Array) -> jax.Array:
     """Objective of one action sequence [H, A] (deterministic rollout) -> []."""
     z = rollout(prob.model, prob.params, prob.ctx, actions)
     r = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, z)
-    return discounted_return(r, obj.bootstrap_value(prob, z[-1]), prob.gamma, prob.bootstrap)
+    return obj.plan_return(prob, z, r)[0]
 
 
 def _update(cfg: Config, samples: jax.Array, score: jax.Array) -> ShootState:
@@ -96,8 +96,7 @@ def shoot_metrics(prob: Problem, state: ShootState) -> dict[str, jax.Array]:
     acts = jnp.clip(state.mean, -1.0, 1.0)
     z = rollout(prob.model, prob.params, prob.ctx, acts)
     r = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, z)
-    v = obj.bootstrap_value(prob, z[-1])
-    ret = discounted_return(r, v, prob.gamma, prob.bootstrap)
+    ret, v = obj.plan_return(prob, z, r)
     zero = jnp.zeros((), jnp.float32)
     return {
         "dyn_viol": zero,
