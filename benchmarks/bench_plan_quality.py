@@ -50,55 +50,64 @@ TASK = "cheetah_run"
 # name -> (method, overrides). The reward-only objective everywhere (the fixture has no trained
 # value), so ColloDreamer's collocation runs with value.bootstrap=false.
 NO_VALUE = ["value.bootstrap=false"]
+# Rows other than the default start from small random actions (planner.init=rollout), as they
+# were measured before the default became the CEM start (planner.init=cem, 50 iterations).
+COLD = NO_VALUE + ["planner.init=rollout"]
 CONFIGS: dict[str, tuple[str, list[str]]] = {
     "collocation default": ("collodreamer", NO_VALUE),
-    "adam K=30 lr=0.05 warm (old default)": (
+    "adam K=200 lr=0.015 cold (old default)": ("collodreamer", COLD + ["planner.iters=200"]),
+    "adam K=30 lr=0.05 warm (older default)": (
         "collodreamer",
-        NO_VALUE + ["planner.iters=30", "planner.adam_lr=0.05", "planner.warm_start=true"],
+        COLD + ["planner.iters=30", "planner.adam_lr=0.05", "planner.warm_start=true"],
     ),
     "adam K=300 lr=0.01": (
         "collodreamer",
-        NO_VALUE + ["planner.iters=300", "planner.adam_lr=0.01"],
+        COLD + ["planner.iters=300", "planner.adam_lr=0.01"],
     ),
-    "adam K=200 lr=0.015 warm": ("collodreamer", NO_VALUE + ["planner.warm_start=true"]),
+    "adam K=200 lr=0.015 warm": (
+        "collodreamer",
+        COLD + ["planner.iters=200", "planner.warm_start=true"],
+    ),
     # A tighter dynamics tolerance plans worse: the relaxation is what lets Adam move.
-    "adam K=200 dyn_eps=1e-3": ("collodreamer", NO_VALUE + ["planner.dyn_eps=1e-3"]),
-    "adam K=200 dyn_eps=1e-4": ("collodreamer", NO_VALUE + ["planner.dyn_eps=1e-4"]),
+    "adam K=200 dyn_eps=1e-3": (
+        "collodreamer",
+        COLD + ["planner.iters=200", "planner.dyn_eps=1e-3"],
+    ),
+    "adam K=200 dyn_eps=1e-4": (
+        "collodreamer",
+        COLD + ["planner.iters=200", "planner.dyn_eps=1e-4"],
+    ),
     # Half the iterations at any step size plans far worse: the multipliers tighten per iteration.
     "adam K=100 lr=0.03": (
         "collodreamer",
-        NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.03"],
+        COLD + ["planner.iters=100", "planner.adam_lr=0.03"],
     ),
     "adam K=100 lr=0.05 decay=0.1": (
         "collodreamer",
-        NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.05", "planner.adam_decay=0.1"],
+        COLD + ["planner.iters=100", "planner.adam_lr=0.05", "planner.adam_decay=0.1"],
     ),
     "gauss_newton K=30": (
         "collodreamer",
-        NO_VALUE + ["planner.solver=gauss_newton", "planner.iters=30"],
+        COLD + ["planner.solver=gauss_newton", "planner.iters=30"],
     ),
     # Matrix-free Gauss-Newton: 10 conjugate-gradient steps per iteration instead of the exact solve.
-    "cg K=30": ("collodreamer", NO_VALUE + ["planner.solver=cg", "planner.iters=30"]),
-    "cg K=15": ("collodreamer", NO_VALUE + ["planner.solver=cg", "planner.iters=15"]),
+    "cg K=30": ("collodreamer", COLD + ["planner.solver=cg", "planner.iters=30"]),
+    "cg K=15": ("collodreamer", COLD + ["planner.solver=cg", "planner.iters=15"]),
     # Shooting refinement: Adam on the actions through the model rollout after collocation.
-    "adam K=200 + refine 50": ("collodreamer", NO_VALUE + ["planner.refine_iters=50"]),
+    "adam K=200 + refine 50": (
+        "collodreamer",
+        COLD + ["planner.iters=200", "planner.refine_iters=50"],
+    ),
     "refine 100 only (shooting GD)": (
         "collodreamer",
-        NO_VALUE + ["planner.iters=0", "planner.refine_iters=100"],
+        COLD + ["planner.iters=0", "planner.refine_iters=100"],
     ),
     "adam K=100 + refine 50": (
         "collodreamer",
-        NO_VALUE + ["planner.iters=100", "planner.adam_lr=0.03", "planner.refine_iters=50"],
+        COLD + ["planner.iters=100", "planner.adam_lr=0.03", "planner.refine_iters=50"],
     ),
-    # Collocation started from a small CEM on the same objective (planner.init=cem).
-    "cem init 100x4 + adam K=50": (
-        "collodreamer",
-        NO_VALUE + ["planner.init=cem", "planner.iters=50"],
-    ),
-    "cem init 100x4 only (K=0)": (
-        "collodreamer",
-        NO_VALUE + ["planner.init=cem", "planner.iters=0"],
-    ),
+    # Collocation started from a small CEM on the same objective (the default: 100x4, K=50).
+    "cem init 100x4 only (K=0)": ("collodreamer", NO_VALUE + ["planner.iters=0"]),
     "cem 100x4": (
         "cem",
         ["planner.shooting.samples=100", "planner.shooting.elites=10", "planner.shooting.iters=4"],

@@ -199,17 +199,27 @@ CALLS: list[tuple[str, str, list[str], dict[int, int | None]]] = [
     (
         "collodreamer/cg",
         "collodreamer",
-        ["planner.solver=cg", "planner.iters=30"],
+        ["planner.solver=cg", "planner.iters=30", "planner.init=rollout", "planner.value_lambda=1"],
         {1: None, 16: 5},
     ),
     (
         "collodreamer/gauss_newton",
         "collodreamer",
-        ["planner.solver=gauss_newton", "planner.iters=30"],
+        [
+            "planner.solver=gauss_newton",
+            "planner.iters=30",
+            "planner.init=rollout",
+            "planner.value_lambda=1",
+        ],
         {1: 5, 16: 2},
     ),
     ("latco/adam", "latco", [], {1: None, 16: None}),
-    ("latco/cg", "latco", ["planner.solver=cg", "planner.iters=30"], {1: None, 16: 5}),
+    (
+        "latco/cg",
+        "latco",
+        ["planner.solver=cg", "planner.iters=30", "planner.init=rollout"],
+        {1: None, 16: 5},
+    ),
     (
         "latco/gauss_newton exact LC (K=100)",
         "latco",
@@ -324,10 +334,13 @@ def _print_call(r: dict[str, Any]) -> None:
 
 # The MPC comparison uses the LatCo objective (rewards only): with random weights the value net is
 # not a correct value, and chasing it would not show up in the executed reward.
-OLD = ["planner.iters=30", "planner.adam_lr=0.05", "planner.warm_start=true"]  # pre-a67d95a default
+# Rows start from small random actions (planner.init=rollout), as they were measured before the
+# default became the CEM start.
+COLD = ["planner.init=rollout"]
+OLD = [*COLD, "planner.iters=30", "planner.adam_lr=0.05", "planner.warm_start=true"]  # pre-a67d95a
 MPC: list[tuple[str, str, list[str]]] = [
-    ("random actions (no planning)", "latco", ["planner.iters=0"]),
-    ("adam K=200 lr 0.015 cold (default)", "latco", []),
+    ("random actions (no planning)", "latco", [*COLD, "planner.iters=0"]),
+    ("adam K=200 lr 0.015 cold", "latco", [*COLD, "planner.iters=200"]),
     ("adam K=30 lr 0.05 warm (old default)", "latco", OLD),
     ("adam K=15 lr 0.05 warm", "latco", [*OLD, "planner.iters=15"]),
     ("adam K=30 lr 0.05 cold", "latco", [*OLD, "planner.warm_start=false"]),
@@ -335,12 +348,24 @@ MPC: list[tuple[str, str, list[str]]] = [
     (
         "cg K=10 cg_iters=3 warm",
         "latco",
-        ["planner.solver=cg", "planner.iters=10", "planner.cg_iters=3", "planner.warm_start=true"],
+        [
+            *COLD,
+            "planner.solver=cg",
+            "planner.iters=10",
+            "planner.cg_iters=3",
+            "planner.warm_start=true",
+        ],
     ),
     (
         "cg K=30 cg_iters=3 warm",
         "latco",
-        ["planner.solver=cg", "planner.iters=30", "planner.cg_iters=3", "planner.warm_start=true"],
+        [
+            *COLD,
+            "planner.solver=cg",
+            "planner.iters=30",
+            "planner.cg_iters=3",
+            "planner.warm_start=true",
+        ],
     ),
 ]
 

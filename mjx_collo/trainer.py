@@ -103,6 +103,14 @@ def validate(cfg: Config) -> None:
                 f"run.{name}={value} must be a multiple of run.chunk_env_steps="
                 f"{run.chunk_env_steps} (evaluation and checkpoints happen between chunks)"
             )
+    pc = cfg.planner
+    if pc.kind == "collodreamer" and cfg.value.bootstrap and pc.value_lambda < 1.0:
+        if pc.solver != "adam":
+            raise ConfigError(
+                f"planner.value_lambda={pc.value_lambda} (a lambda-return over the plan) needs "
+                f"planner.solver=adam; the {pc.solver} residuals bootstrap the value at the "
+                f"plan's end only: add planner.value_lambda=1.0"
+            )
     if run.prefill // per_iter < cfg.replay.length:
         raise ConfigError(
             f"run.prefill={run.prefill} env steps give {run.prefill // per_iter} replay rows per "

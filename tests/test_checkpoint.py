@@ -37,8 +37,9 @@ def test_a_state_with_nan_is_not_saved_and_the_last_good_one_stays(tmp_path):
 
 
 def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
-    """Runs saved before ``planner.refine_iters`` existed must evaluate and resume: their stored
-    config gets the value that reproduces how they planned (no refinement)."""
+    """Runs saved before ``planner.refine_iters`` / ``planner.value_lambda`` existed must evaluate
+    and resume: their stored config gets the value that reproduces how they planned (no
+    refinement, the value bootstrapped at the plan's end only), not today's default."""
     cfg = config.load(task="reacher_easy", presets=["debug"], overrides=["planner.refine_iters=7"])
     ck = checkpoint.Checkpointer(tmp_path / "checkpoints", keep=3)
     assert ck.save(10, _state([1.0]), None, cfg, {"env_steps": 10})
@@ -51,6 +52,10 @@ def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
         config.build(old)  # what an old stored config meets without the completion
     saved = config.complete_saved(old)
     assert config.build(saved).planner.refine_iters == 0
-    assert config.diff(config.build(saved), cfg) == ["planner.refine_iters: 0 -> 7"]
+    assert config.build(saved).planner.value_lambda == 1.0
+    assert sorted(config.diff(config.build(saved), cfg)) == [
+        "planner.refine_iters: 0 -> 7",
+        f"planner.value_lambda: 1.0 -> {cfg.planner.value_lambda}",
+    ]
     assert ck.config(10).planner.refine_iters == 7  # a config that has the key keeps its value
     ck.close()

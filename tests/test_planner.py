@@ -35,7 +35,9 @@ SOLVER_SETTINGS = {
 
 
 def _cfg(method: str, *overrides: str) -> config.Config:
-    return config.load(method=method, overrides=list(overrides))
+    """Config for the probe problems. They test the solvers from a cold start (small random
+    actions): the default CEM start (planner.init=cem) is tested on its own below."""
+    return config.load(method=method, overrides=["planner.init=rollout", *overrides])
 
 
 def _solve(cfg, model, ctx, key, params=None, action_dim=2):
@@ -219,6 +221,7 @@ def test_value_bootstrap_reaches_beyond_horizon(solver, iters):
         "planner.gamma=0.99",
         f"planner.solver={solver}",
         "planner.init_std=0.1",
+        "planner.value_lambda=1.0",  # the paper's end bootstrap (Eq. 10); lambda < 1: below
     ]
     ctx = jnp.zeros(1)
     plan_cd, m_cd = _solve(
@@ -382,7 +385,9 @@ def test_value_lambda_plans_through_the_values_of_every_state():
     assert np.all(plan.z[:, -1, 0] > 0.6)
     prob = obj.make_problem(cfg, model, None, ctx)
     assert prob.lambda_values
-    end_only = obj.make_problem(_cfg("collodreamer", *common), model, None, ctx)
+    end_only = obj.make_problem(
+        _cfg("collodreamer", *common, "planner.value_lambda=1.0"), model, None, ctx
+    )
     j_lam, _, _ = obj.exact_terms(prob, plan.z[0], plan.a[0])
     j_end, _, _ = obj.exact_terms(end_only, plan.z[0], plan.a[0])
     np.testing.assert_allclose(m["plan_return"][0], j_lam, rtol=1e-5)

@@ -18,12 +18,13 @@ def test_default_collocation_plans_on_trained_model():
     params, replay = bpq.load_params(base, bpq.FIXTURE)
     ctxs = bpq.contexts(base, params, replay)
     default = bpq.model_section("default", "collodreamer", bpq.NO_VALUE, params, ctxs)
-    # Initial actions reach 0.79, the old default 0.90, CEM-300 4.47, the default 4.14 ± 0.53.
-    assert default["initial_shadow_return"] < 1.0
-    assert default["shadow_return"] > 3.0, default
-    old = bpq.model_section(
-        "old", "collodreamer", bpq.CONFIGS["adam K=30 lr=0.05 warm (old default)"][1], params, ctxs
-    )
+    # Measured: the CEM start (100 x 4) reaches 3.70, 50 collocation steps from it 5.00 +- 0.55;
+    # cold Adam K=200 (the previous default) 4.14, CEM-300 x 5 4.47, random actions 0.79.
+    assert default["initial_shadow_return"] > 2.5, "the CEM start no longer finds a basin"
+    assert default["shadow_return"] > default["initial_shadow_return"] + 0.5, default
+    assert default["shadow_return"] > 4.0, default
+    name = "adam K=30 lr=0.05 warm (older default)"
+    old = bpq.model_section("old", "collodreamer", bpq.CONFIGS[name][1], params, ctxs)
     assert old["shadow_return"] < 1.5, "the fixture no longer separates a planner that fails"
 
 

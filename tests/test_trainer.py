@@ -218,6 +218,9 @@ def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(
 def test_config_inconsistency_names_the_fix():
     with pytest.raises(config.ConfigError, match="multiple of run.chunk_env_steps"):
         trainer.validate(debug_cfg(overrides=["run.eval_every=500"]))
+    with pytest.raises(config.ConfigError, match="add planner.value_lambda=1.0"):
+        trainer.validate(debug_cfg(overrides=["planner.solver=gauss_newton"]))
+    trainer.validate(debug_cfg(overrides=["planner.solver=gauss_newton", "planner.value_lambda=1"]))
 
 
 def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
