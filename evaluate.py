@@ -50,8 +50,9 @@ def eval_config(cfg, overrides):
     return new
 
 
-def restore_state(ckpt, step: int, cfg, env):
-    """The seed-stacked train state of checkpoint ``step`` without the replay, and the seed keys.
+def restore_state(ckpt, step: int, cfg, env, replay: bool = False):
+    """The seed-stacked train state of checkpoint ``step`` and the seed keys; the replay only with
+    ``replay=True`` (the checkpoint must hold one), else ``state.replay`` is None.
 
     cfg: the checkpoint's own config: the state's shapes follow it (the acting caches depend on
     planner.mpc_steps), whatever planner settings the evaluation then uses.
@@ -67,9 +68,11 @@ def restore_state(ckpt, step: int, cfg, env):
     # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
     hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
     init = trainer.make_train(cfg, env).init
-    abstract = jax.eval_shape(jax.vmap(init), keys, hyper).replace(replay=None)
-    state, _, _ = ckpt.restore(abstract, None, step)
-    return state, keys
+    abstract = jax.eval_shape(jax.vmap(init), keys, hyper)
+    state, rep, _ = ckpt.restore(
+        abstract.replace(replay=None), abstract.replay if replay else None, step
+    )
+    return state.replace(replay=rep), keys
 
 
 def main(argv=None) -> int:

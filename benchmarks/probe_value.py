@@ -48,7 +48,7 @@ def main(argv=None) -> int:
 
     import evaluate
     from mjx_collo import agent as agent_lib
-    from mjx_collo import checkpoint, runner, trainer
+    from mjx_collo import checkpoint, runner
     from mjx_collo import replay as replay_lib
     from mjx_collo import value as value_lib
     from mjx_collo import world_model as wm
@@ -68,13 +68,9 @@ def main(argv=None) -> int:
         return 2
     cfg = evaluate.eval_config(cfg0, args.overrides)
     env = runner.make_env(cfg0)
-    n = meta["num_runs"]
-    keys = trainer.seed_keys(cfg0, n)
-    hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
-    abstract = jax.eval_shape(jax.vmap(trainer.make_train(cfg0, env).init), keys, hyper)
-    state, replay, _ = ck.restore(abstract.replace(replay=None), abstract.replay, step)
+    state, _ = evaluate.restore_state(ck, step, cfg0, env, replay=True)
     s = jax.tree.map(lambda x: x[args.seed], state)
-    rep = jax.tree.map(lambda x: x[args.seed], replay)
+    rep = s.replay
     vc, wc, length = cfg0.value, cfg0.wm, cfg0.replay.length
 
     def posteriors(key, batch):
