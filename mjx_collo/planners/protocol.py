@@ -100,6 +100,26 @@ def rollout(model: LatentModel, params: Params, ctx: Context, actions: jax.Array
     return jnp.concatenate([z1[None], rest], axis=0)
 
 
+def rollout_rewards(
+    model: LatentModel, params: Params, ctx: Context, actions: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """:func:`rollout` and the rewards r(z_k) [H] of its states in one pass: with the model's
+    ``step_reward`` each state's shared work (the reduced RSSM space: its prior) is done once
+    for its transition and its reward, instead of once in the rollout and again for the reward."""
+    if model.step_reward is None:
+        z = rollout(model, params, ctx, actions)
+        return z, jax.vmap(model.reward, in_axes=(None, 0))(params, z)
+    z1 = model.start(params, ctx, actions[0])
+
+    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        nz, r = model.step_reward(params, z, a)
+        return nz, (nz, r)
+
+    z_last, (rest, r_head) = jax.lax.scan(body, z1, actions[1:])
+    z = jnp.concatenate([z1[None], rest], axis=0)
+    return z, jnp.concatenate([r_head, model.reward(params, z_last)[None]], axis=0)
+
+
 def discounts(gamma: jax.Array | float, horizon: int) -> jax.Array:
     """[H] weights gamma^(k-1) of the rewards r(z_k), k = 1..H."""
     return jnp.power(jnp.asarray(gamma, jnp.float32), jnp.arange(horizon, dtype=jnp.float32))

@@ -19,7 +19,7 @@ from flax import struct
 from mjx_collo.config import Config
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
-from mjx_collo.planners.protocol import rollout
+from mjx_collo.planners.protocol import rollout_rewards
 
 
 @struct.dataclass
@@ -49,8 +49,7 @@ def shift_shoot(cfg: Config, prev: ShootState, shift: int) -> ShootState:
 
 def sequence_return(prob: Problem, actions: jax.Array) -> jax.Array:
     """Objective of one action sequence [H, A] (deterministic rollout) -> []."""
-    z = rollout(prob.model, prob.params, prob.ctx, actions)
-    r = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, z)
+    z, r = rollout_rewards(prob.model, prob.params, prob.ctx, actions)
     return obj.plan_return(prob, z, r)[0]
 
 
@@ -94,8 +93,7 @@ def shoot_metrics(prob: Problem, state: ShootState) -> dict[str, jax.Array]:
     """Diagnostics of the mean plan (same keys as the collocation metrics; shooting plans are
     feasible by construction, so violations and multipliers are zero)."""
     acts = jnp.clip(state.mean, -1.0, 1.0)
-    z = rollout(prob.model, prob.params, prob.ctx, acts)
-    r = jax.vmap(prob.model.reward, in_axes=(None, 0))(prob.params, z)
+    z, r = rollout_rewards(prob.model, prob.params, prob.ctx, acts)
     ret, v = obj.plan_return(prob, z, r)
     zero = jnp.zeros((), jnp.float32)
     return {
