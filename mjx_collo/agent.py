@@ -68,6 +68,11 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
 
     else:
         value = None
+
+    def step_reward_value(p, z, a):
+        nz, r, f = fns.step_reward_feat(p[0], z, a)
+        return nz, r, value(p[1], f)
+
     model = LatentModel(
         start=lambda p, ctx, a: fns.start(p[0], ctx, a),
         step=lambda p, z, a: fns.step(p[0], z, a),
@@ -76,6 +81,7 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
         feat=lambda p, z: fns.feat(p[0], z),
         ctx_feat=lambda p, ctx: fns.ctx_feat(p[0], ctx),
         step_reward=lambda p, z, a: fns.step_reward(p[0], z, a),
+        step_reward_value=None if value is None else step_reward_value,
     )
     return Agent(cfg, action_dim, fns, model, planner_lib.make_planner(cfg, model, action_dim))
 

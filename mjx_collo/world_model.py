@@ -883,6 +883,8 @@ class PlanningFns(NamedTuple):
     ctx_feat(wm_params, ctx) -> [F]: feature of a posterior state;
     step_reward(wm_params, z [Z], a [A]) -> (step(z, a), reward(z)): both in one pass (the reduced
       space computes the prior m(h) once for the two; ~15% of a collocation iteration);
+    step_reward_feat(wm_params, z [Z], a [A]) -> (step(z, a), reward(z), feat(z)): the same pass
+      with the features too, for planners that also read a value of ``feat(z)``;
     size: Z.
     """
 
@@ -892,6 +894,9 @@ class PlanningFns(NamedTuple):
     feat: Callable[[Params, jax.Array], jax.Array]
     ctx_feat: Callable[[Params, RSSMState], jax.Array]
     step_reward: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+    step_reward_feat: Callable[
+        [Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]
+    ]
     size: int
 
 
@@ -933,9 +938,12 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
         def feat(p: Params, z: jax.Array) -> jax.Array:
             return jnp.concatenate([prior_mean(cfg, p, z), z], -1)
 
-        def step_reward(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+        def step_reward_feat(
+            p: Params, z: jax.Array, a: jax.Array
+        ) -> tuple[jax.Array, jax.Array, jax.Array]:
             m = prior_mean(cfg, p, z)
-            return _transition(cfg, p, m, z, a), reward(cfg, p, jnp.concatenate([m, z], -1))
+            f = jnp.concatenate([m, z], -1)
+            return _transition(cfg, p, m, z, a), reward(cfg, p, f), f
 
         size = cfg.deter
     else:
@@ -946,8 +954,14 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
 
     if space == "full":
 
-        def step_reward(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
-            return step(p, z, a), rew(p, z)
+        def step_reward_feat(
+            p: Params, z: jax.Array, a: jax.Array
+        ) -> tuple[jax.Array, jax.Array, jax.Array]:
+            return step(p, z, a), rew(p, z), z
+
+    def step_reward(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+        nz, r, _ = step_reward_feat(p, z, a)
+        return nz, r
 
     return PlanningFns(
         start=start,
@@ -956,6 +970,7 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
         feat=feat,
         ctx_feat=ctx_feat,
         step_reward=step_reward,
+        step_reward_feat=step_reward_feat,
         size=size,
     )
 

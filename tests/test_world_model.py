@@ -655,3 +655,50 @@ def test_world_model_beats_copy_last_on_held_out_cheetah(latent):
     # ~1.3 vs ~17.7 averaged over 15 open-loop steps.
     assert e["model_1"] < 0.5 * e["copy_1"], e
     assert e["model_15"] < 0.5 * e["copy_15"], e
+
+
+@pytest.mark.parametrize("space", ["full", "reduced"])
+def test_shared_pass_gives_the_values_and_gradients_of_separate_calls(space):
+    """The lambda-return planners read V at every plan state through ``step_reward_value`` (one
+    feature pass per state for transition, reward and value). Rollout, predictions, rewards,
+    values and the objective's gradient equal those of calling step, reward and value apart."""
+    from mjx_collo.planners import objective as obj
+    from mjx_collo.planners import protocol as proto
+
+    cfg, params, _, _, _, post, _ = _model("categorical")
+    fns = wm.planning_fns(cfg, space)
+    vp = jax.random.normal(jax.random.key(5), (wm.feat_size(cfg),)) / 10.0
+
+    def value(vp, f):  # a stand-in value head: any function of the features
+        return jnp.tanh(f @ vp) * 3.0
+
+    base = proto.LatentModel(
+        start=fns.start, step=fns.step, reward=fns.reward, step_reward=fns.step_reward
+    )
+    shared = proto.attach_value(base, fns.feat, value, fns.step_reward_feat)
+    apart = shared._replace(step_reward_value=None, step_reward=None)
+    assert shared.step_reward_value is not None
+    ctx = jax.tree.map(lambda x: x[0, -1], post)
+    acts = jax.random.uniform(jax.random.key(6), (7, ACT), minval=-1, maxval=1)
+    p = (params, vp)
+
+    def problem(model):
+        return obj.Problem(model, p, ctx, 0.9, True, 1.0, True, -2.0, 2.0, 1.0, 1.0, 0.8, True)
+
+    @jax.jit
+    def run(acts):
+        out = {}
+        for name, model in (("shared", shared), ("apart", apart)):
+            z, r, v = proto.rollout_rewards_values(model, p, ctx, acts)
+            zs = z + 0.01  # off the rollout: predictions differ from the plan states
+            prob = problem(model)
+            pred, pr, pv = obj.predict_rewards_values(prob, zs, acts)
+            grad = jax.grad(lambda zz, prob=prob: obj.exact_terms(prob, zz, acts)[0])(zs)
+            out[name] = (z, r, v, pred, pr, pv, grad, obj.rollout_return(prob, acts))
+        return out
+
+    o = run(acts)
+    _close(o["shared"], o["apart"])
+    z, r, v = o["apart"][:3]
+    _close(v, jax.vmap(lambda zz: value(vp, fns.feat(params, zz)))(z))
+    assert float(jnp.std(v)) > 1e-3 and float(jnp.abs(o["apart"][6]).max()) > 0

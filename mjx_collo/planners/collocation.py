@@ -20,7 +20,7 @@ from mjx_collo.config import Config, ShootingConfig
 from mjx_collo.planners import duals, shooting, solvers
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
-from mjx_collo.planners.protocol import rollout, rollout_rewards
+from mjx_collo.planners.protocol import rollout
 
 InnerFn = Callable[[Any, "PlanState", jax.Array], Any]
 
@@ -233,8 +233,8 @@ def refine(cfg: Config, prob: Problem, plan: PlanState, unroll: bool = False) ->
 def shadow(prob: Problem, a: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """``(J, rewards [H], states [H, Z])`` of the feasible model rollout of actions ``a`` [H, A],
     taken as given (the callers clip them to the bounds)."""
-    zs, rs = rollout_rewards(prob.model, prob.params, prob.ctx, a)
-    return obj.plan_return(prob, zs, rs)[0], rs, zs
+    j, rs, zs, _ = obj.rollout_return(prob, a)
+    return j, rs, zs
 
 
 def plan_metrics(

@@ -24,7 +24,15 @@ import jax.numpy as jnp
 
 from mjx_collo.config import Config
 from mjx_collo.planners import duals
-from mjx_collo.planners.protocol import LatentModel, discounted_return, discounts, lambda_return
+from mjx_collo.planners.protocol import (
+    LatentModel,
+    discounted_return,
+    discounts,
+    lambda_return,
+    last_reward_value,
+    rollout_rewards,
+    rollout_rewards_values,
+)
 
 
 class Problem(NamedTuple):
@@ -129,24 +137,61 @@ def predict_and_rewards(prob: Problem, z: jax.Array, a: jax.Array) -> tuple[jax.
     return pred, jnp.concatenate([r_head, r_last[None]], axis=0)
 
 
+def predict_rewards_values(
+    prob: Problem, z: jax.Array, a: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """:func:`predict_and_rewards` and the (unclipped) values V(z_k) [H] of the plan states, with
+    the model's ``step_reward_value`` computing each state's features once for all three."""
+    m, p = prob.model, prob.params
+    if m.step_reward_value is None:
+        pred, rewards = predict_and_rewards(prob, z, a)
+        return pred, rewards, jax.vmap(m.value, in_axes=(None, 0))(p, z)
+    z1 = m.start(p, prob.ctx, a[0])
+    rest, r_head, v_head = jax.vmap(m.step_reward_value, in_axes=(None, 0, 0))(p, z[:-1], a[1:])
+    r_last, v_last = last_reward_value(m, p, z[-1], a[0])
+    pred = jnp.concatenate([z1[None], rest], axis=0)
+    return pred, jnp.append(r_head, r_last), jnp.append(v_head, v_last)
+
+
+def clip_value(prob: Problem, v: jax.Array) -> jax.Array:
+    """Values as the objective reads them: clipped to ``value.clip_range`` when ``value.clip``."""
+    return jnp.clip(v, prob.value_lo, prob.value_hi) if prob.clip else v
+
+
 def bootstrap_value(prob: Problem, z_last: jax.Array) -> jax.Array:
     """Frozen value of the last plan state, clipped when ``value.clip``. z_last: [Z] -> []."""
     if not prob.bootstrap:
         return jnp.zeros((), z_last.dtype)
-    v = prob.model.value(prob.params, z_last)
-    if prob.clip:
-        v = jnp.clip(v, prob.value_lo, prob.value_hi)
-    return v
+    return clip_value(prob, prob.model.value(prob.params, z_last))
 
 
-def plan_return(prob: Problem, zs: jax.Array, rewards: jax.Array) -> tuple[jax.Array, jax.Array]:
+def plan_return(
+    prob: Problem, zs: jax.Array, rewards: jax.Array, values: jax.Array | None = None
+) -> tuple[jax.Array, jax.Array]:
     """``(J, V(z_H))`` of plan states ``zs`` [H, Z] with rewards r(z_k) [H]: the discounted reward
-    sum plus ``gamma^H V(z_H)``, or the lambda-return when ``prob.lambda_values``."""
+    sum plus ``gamma^H V(z_H)``, or the lambda-return when ``prob.lambda_values`` (over
+    ``values``, the unclipped V(z_k) [H] when the caller has them)."""
     if prob.lambda_values:
-        values = jax.vmap(lambda z: bootstrap_value(prob, z))(zs)
+        if values is None:
+            values = jax.vmap(prob.model.value, in_axes=(None, 0))(prob.params, zs)
+        values = clip_value(prob, values)
         return lambda_return(rewards, values, prob.gamma, prob.value_lambda), values[-1]
     v = bootstrap_value(prob, zs[-1])
     return discounted_return(rewards, v, prob.gamma, prob.bootstrap), v
+
+
+def rollout_return(
+    prob: Problem, a: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """``(J, rewards [H], states [H, Z], V(z_H))`` of the feasible model rollout of actions ``a``
+    [H, A]; the lambda-return reads each state's value in the rollout's own pass."""
+    if prob.lambda_values:
+        zs, rs, vs = rollout_rewards_values(prob.model, prob.params, prob.ctx, a)
+    else:
+        zs, rs = rollout_rewards(prob.model, prob.params, prob.ctx, a)
+        vs = None
+    j, v = plan_return(prob, zs, rs, vs)
+    return j, rs, zs, v
 
 
 def reward_residual(prob: Problem, z: jax.Array) -> jax.Array:
@@ -203,8 +248,11 @@ def cost(raw: Raw, w: Weights) -> jax.Array:
 
 def exact_terms(prob: Problem, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array, Raw]:
     """Exact objective pieces: (J [], rewards [H], raw residuals for the constraints)."""
-    pred, rewards = predict_and_rewards(prob, z, a)
-    j, v = plan_return(prob, z, rewards)
+    if prob.lambda_values:
+        pred, rewards, values = predict_rewards_values(prob, z, a)
+    else:
+        (pred, rewards), values = predict_and_rewards(prob, z, a), None
+    j, v = plan_return(prob, z, rewards, values)
     raw = Raw(d=z - pred, hinge=duals.act_hinge(a), rew=rewards, val=v)
     return j, rewards, raw
 

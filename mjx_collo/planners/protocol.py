@@ -39,6 +39,9 @@ class LatentModel(NamedTuple):
       step_reward: optional ``(params, z [Z], a [A]) -> (step(z, a), reward(z))`` in one pass, for
         models where the two share work (the reduced RSSM space computes the prior of ``z`` for
         both); equal to calling ``step`` and ``reward``. None: the planners call them separately.
+      step_reward_value: optional ``(params, z, a) -> (step(z, a), reward(z), value(z))`` in one
+        pass (the value read off the same features), for objectives that read V at every plan
+        state (``planner.value_lambda < 1``). None: ``value`` is called separately.
     """
 
     start: Callable[[Params, Context, jax.Array], jax.Array]
@@ -48,12 +51,16 @@ class LatentModel(NamedTuple):
     feat: Callable[[Params, jax.Array], jax.Array] | None = None
     ctx_feat: Callable[[Params, Context], jax.Array] | None = None
     step_reward: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]] | None = None
+    step_reward_value: (
+        Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]] | None
+    ) = None
 
 
 def attach_value(
     model: LatentModel,
     feat: Callable[[Params, jax.Array], jax.Array],
     value: Callable[[Params, jax.Array], jax.Array],
+    step_reward_feat: Callable[[Params, jax.Array, jax.Array], tuple[Any, Any, Any]] | None = None,
 ) -> LatentModel:
     """Model whose params are ``(wm_params, value_params)`` and whose value is ``value(vp, feat(z))``.
 
@@ -62,8 +69,17 @@ def attach_value(
         ``ctx_feat`` is kept).
       feat: ``(wm_params, z [Z]) -> [F]``.
       value: ``(value_params, f [F]) -> []`` deterministic (target) value network.
+      step_reward_feat: optional ``(wm_params, z, a) -> (step(z, a), reward(z), feat(z))`` in one
+        pass; gives the model its ``step_reward_value``.
     """
     ctx_feat, step_reward = model.ctx_feat, model.step_reward
+    srv = None
+    if step_reward_feat is not None:
+
+        def srv(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+            nz, r, f = step_reward_feat(p[0], z, a)
+            return nz, r, value(p[1], f)
+
     return LatentModel(
         start=lambda p, ctx, a: model.start(p[0], ctx, a),
         step=lambda p, z, a: model.step(p[0], z, a),
@@ -72,6 +88,7 @@ def attach_value(
         feat=lambda p, z: feat(p[0], z),
         ctx_feat=None if ctx_feat is None else (lambda p, ctx: ctx_feat(p[0], ctx)),
         step_reward=None if step_reward is None else (lambda p, z, a: step_reward(p[0], z, a)),
+        step_reward_value=srv,
     )
 
 
@@ -118,6 +135,36 @@ def rollout_rewards(
     z_last, (rest, r_head) = jax.lax.scan(body, z1, actions[1:])
     z = jnp.concatenate([z1[None], rest], axis=0)
     return z, jnp.concatenate([r_head, model.reward(params, z_last)[None]], axis=0)
+
+
+def rollout_rewards_values(
+    model: LatentModel, params: Params, ctx: Context, actions: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """:func:`rollout` with the rewards and (unclipped) values of its states [H]: with the
+    model's ``step_reward_value`` each state's features are computed once for its transition,
+    reward and value."""
+    if model.step_reward_value is None:
+        z, r = rollout_rewards(model, params, ctx, actions)
+        return z, r, jax.vmap(model.value, in_axes=(None, 0))(params, z)
+    z1 = model.start(params, ctx, actions[0])
+
+    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+        nz, r, v = model.step_reward_value(params, z, a)
+        return nz, (nz, r, v)
+
+    z_last, (rest, r_head, v_head) = jax.lax.scan(body, z1, actions[1:])
+    r_last, v_last = last_reward_value(model, params, z_last, actions[0])
+    z = jnp.concatenate([z1[None], rest], axis=0)
+    return z, jnp.append(r_head, r_last), jnp.append(v_head, v_last)
+
+
+def last_reward_value(
+    model: LatentModel, params: Params, z: jax.Array, a_like: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """(reward(z), value(z)) of the plan's last state through ``step_reward_value``; its
+    transition (under a zero action shaped like ``a_like``) is unused, so XLA drops it."""
+    _, r, v = model.step_reward_value(params, z, jnp.zeros_like(a_like))
+    return r, v
 
 
 def discounts(gamma: jax.Array | float, horizon: int) -> jax.Array:

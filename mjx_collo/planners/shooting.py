@@ -19,7 +19,6 @@ from flax import struct
 from mjx_collo.config import Config
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
-from mjx_collo.planners.protocol import rollout_rewards
 
 
 @struct.dataclass
@@ -49,8 +48,7 @@ def shift_shoot(cfg: Config, prev: ShootState, shift: int) -> ShootState:
 
 def sequence_return(prob: Problem, actions: jax.Array) -> jax.Array:
     """Objective of one action sequence [H, A] (deterministic rollout) -> []."""
-    z, r = rollout_rewards(prob.model, prob.params, prob.ctx, actions)
-    return obj.plan_return(prob, z, r)[0]
+    return obj.rollout_return(prob, actions)[0]
 
 
 def _update(cfg: Config, samples: jax.Array, score: jax.Array) -> ShootState:
@@ -93,8 +91,7 @@ def shoot_metrics(prob: Problem, state: ShootState) -> dict[str, jax.Array]:
     """Diagnostics of the mean plan (same keys as the collocation metrics; shooting plans are
     feasible by construction, so violations and multipliers are zero)."""
     acts = jnp.clip(state.mean, -1.0, 1.0)
-    z, r = rollout_rewards(prob.model, prob.params, prob.ctx, acts)
-    ret, v = obj.plan_return(prob, z, r)
+    ret, r, _, v = obj.rollout_return(prob, acts)
     zero = jnp.zeros((), jnp.float32)
     return {
         "dyn_viol": zero,
