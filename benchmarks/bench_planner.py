@@ -86,7 +86,8 @@ def build(cfg: Config, key: jax.Array) -> tuple[LatentModel, Any]:
     )
     vstate = value_lib.init_value(cfg.value, k_v, wm.feat_size(cfg.wm))
     value_fn = lambda vp, f: value_lib.apply_value(cfg.value, vp, f)
-    return attach_value(base, fns.feat, value_fn), (wparams, vstate.target)
+    model = attach_value(base, fns.feat, value_fn, fns.step_reward_feat)
+    return model, (wparams, vstate.target)
 
 
 def contexts(cfg: Config, params: Any, key: jax.Array, n: int) -> wm.RSSMState:
@@ -196,6 +197,18 @@ def _iters(cfg: Config) -> int:
 # Runs with fewer iterations are extrapolated linearly in K (marked ``extrap``).
 CALLS: list[tuple[str, str, list[str], dict[int, int | None]]] = [
     ("collodreamer/adam (default)", "collodreamer", [], {1: None, 16: None}),
+    (
+        "collodreamer/adam, end bootstrap (value_lambda=1)",
+        "collodreamer",
+        ["planner.value_lambda=1"],
+        {1: None, 16: None},
+    ),
+    (
+        "collodreamer/adam cold K=200 (older default)",
+        "collodreamer",
+        ["planner.init=rollout", "planner.iters=200", "planner.value_lambda=1"],
+        {1: None, 16: None},
+    ),
     (
         "collodreamer/cg",
         "collodreamer",
