@@ -14,8 +14,12 @@ import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import jax
-import pytest
+# `make test` runs pytest-xdist workers side by side: on a GPU, do not let each one grab 75% of
+# its memory up front.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 _CACHE = Path(
     os.environ.get("MJX_COLLO_TEST_CACHE", Path(__file__).parent.parent / ".pytest_cache" / "xla")
