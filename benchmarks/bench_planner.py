@@ -7,7 +7,7 @@ Contexts are model states after 10 random-action steps from the zero state.
 
 Sections:
   calls   ms per planning call per env at H=30 (cold start, batch 1 and 16 envs, vmapped), compile
-          time, GFLOP per call from XLA ``cost_analysis`` (loop bodies counted per iteration),
+          time, matmul GFLOP per call (``mjx_collo.flops``: every loop counted per iteration),
           achieved GFLOP/s, iterations to the violation threshold, final violation, shadow return.
           Configurations whose full call would run for minutes (exact Gauss-Newton, CEM/MPPI with
           1000 samples at 16 envs) are timed on fewer iterations and extrapolated linearly in K;
@@ -48,6 +48,7 @@ from mjx_collo import config
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm
 from mjx_collo.config import Config
+from mjx_collo.flops import matmul_flops
 from mjx_collo.planner import (
     COLLOCATION,
     LatentModel,
@@ -123,12 +124,6 @@ def matmul_peak() -> float:
     return 2 * 1024**3 / best / 1e9
 
 
-def _flops(compiled: Any) -> float:
-    ca = compiled.cost_analysis()
-    ca = ca[0] if isinstance(ca, list) else ca
-    return float(ca.get("flops", float("nan"))) if ca else float("nan")
-
-
 def compile_and_time(fn: Callable, args: tuple, reps: int) -> tuple[Any, float, float, Any]:
     """(compiled, compile seconds, seconds per run (best of the warm-up and reps), last output).
 
@@ -160,20 +155,11 @@ def _optimize(cfg: Config, model: LatentModel, params: Any, ctx: Any, key: jax.A
 def flops_per_call(
     cfg: Config, model: LatentModel, params: Any, ctx: Any, keys: jax.Array
 ) -> float:
-    """XLA FLOPs of one call over the batch with loops counted per iteration.
-
-    XLA's cost analysis counts a while-loop body once, so the planner is compiled unrolled with 1
-    and 2 outer iterations (inner CG loop unrolled too) and extrapolated linearly to K.
-    """
-    k_name = "shooting.iters" if cfg.planner.kind not in COLLOCATION else "iters"
-    k_full = cfg.planner.shooting.iters if k_name == "shooting.iters" else cfg.planner.iters
-    costs = []
-    for k in (1, 2):
-        c = _with_iters(cfg, k)
-        fn = jax.vmap(lambda ctx_, key_, c=c: _optimize(c, model, params, ctx_, key_, True))
-        costs.append(_flops(jax.jit(fn).lower(ctx, keys).compile()))
-    per_iter = costs[1] - costs[0]
-    return costs[0] + (k_full - 1) * per_iter
+    """Matmul FLOPs of one call over the batch, every loop (CEM iterations, horizon rollouts,
+    collocation and CG iterations) counted per iteration (:mod:`mjx_collo.flops`; XLA's cost
+    analysis counts a loop body once and under-reported the CEM start ~30x)."""
+    fn = jax.vmap(lambda ctx_, key_: _optimize(cfg, model, params, ctx_, key_, False))
+    return matmul_flops(fn, ctx, keys).flops
 
 
 def _with_iters(cfg: Config, k: int) -> Config:
@@ -270,6 +256,7 @@ CALLS: list[tuple[str, str, list[str], dict[int, int | None]]] = [
 
 
 _FLOPS_PER_ENV: dict[str, float] = {}
+FLOP_COUNT = "matmul FLOPs, every loop counted per iteration (mjx_collo.flops)"
 
 
 def _call_row(label: str, method: str, overrides: list[str], batch: int, run_k: int | None):
@@ -309,6 +296,7 @@ def _call_row(label: str, method: str, overrides: list[str], batch: int, run_k: 
         "ms_per_call_per_env": 1e3 * t_call / batch,
         "gflop_per_call_per_env": flops / batch / 1e9,
         "gflops_per_s": flops / t_call / 1e9,
+        "flop_count": FLOP_COUNT,
         "iters_to_feasible": m["iters_to_feasible"] if full else None,
         "dyn_viol": m["dyn_viol"] if full else None,
         "act_viol": m["act_viol"] if full else None,
@@ -500,7 +488,15 @@ def main() -> None:
         "--only", default="", help="comma-separated: run only labels starting with one of these"
     )
     parser.add_argument("--out", default=str(ROOT / "bench_results" / "planner.json"))
+    parser.add_argument(
+        "--recount",
+        action="store_true",
+        help="recompute the GFLOP columns of the stored rows (deterministic; keeps their times)",
+    )
     args = parser.parse_args()
+    if args.recount:
+        recount(Path(args.out))
+        return
     out: dict[str, Any] = {
         "device": platform.processor() or platform.machine(),
         "cpu_count": os.cpu_count(),
@@ -528,6 +524,45 @@ def main() -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))
     _summary(out)
+    print(f"wrote {path}")
+
+
+def recount(path: Path) -> None:
+    """GFLOP columns of the rows in ``path`` recomputed with the current counter; the measured
+    times stay (FLOP counts do not depend on the machine or its load)."""
+    out = json.loads(path.read_text())
+    calls = {label: (method, ov) for label, method, ov, _ in CALLS}
+    for r in out.get("calls", []):
+        if r["planner"] not in calls:
+            continue
+        method, ov = calls[r["planner"]]
+        cfg = load(method, ov)
+        model, params = build(cfg, jax.random.PRNGKey(0))
+        one = (
+            contexts(cfg, params, jax.random.PRNGKey(1), 1),
+            jax.random.split(jax.random.PRNGKey(2), 1),
+        )
+        old = r["gflop_per_call_per_env"]
+        r["gflop_per_call_per_env"] = flops_per_call(cfg, model, params, *one) / 1e9
+        r["gflops_per_s"] = r["gflop_per_call_per_env"] / (r["ms_per_call_per_env"] / 1e3)
+        if r.get("matmul_gflops_at_run"):
+            r["fraction_of_matmul"] = r["gflops_per_s"] / r["matmul_gflops_at_run"]
+        r["flop_count"] = FLOP_COUNT
+        print(
+            f"{r['planner']:<50} batch {r['batch']:>2}: {old:8.2f} -> {r['gflop_per_call_per_env']:8.2f} GFLOP/call/env"
+        )
+    for r in out.get("mpc", []):
+        if not r.get("gflop_per_call_per_env"):
+            continue
+        cfg = load(r["method"], ["planner.mpc_steps=15"] + r["overrides"])
+        model, params = build(cfg, jax.random.PRNGKey(0))
+        one = (
+            contexts(cfg, params, jax.random.PRNGKey(1), 1),
+            jax.random.split(jax.random.PRNGKey(3), 1),
+        )
+        r["gflop_per_call_per_env"] = flops_per_call(cfg, model, params, *one) / 1e9
+        r["flop_count"] = FLOP_COUNT
+    path.write_text(json.dumps(out, indent=1))
     print(f"wrote {path}")
 
 

@@ -98,6 +98,7 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.num_runs, self.hyper, self.labels = trainer_lib.sweep_grid(sweep or {}, num_seeds)
         self.trainer = trainer_lib.make_train(cfg, env)
+        self.budget: dict[str, float] | None = None  # matmul work by schedule (compile())
         self.sharding = trainer_lib.mesh_sharding(self.num_runs)
         self.init_fn, self.chunk_fn, self.eval_fn = trainer_lib.batched(self.trainer, self.sharding)
         self.ckpt = ckpt_lib.Checkpointer(self.dir / "checkpoints", keep=cfg.run.keep_checkpoints)
@@ -204,16 +205,27 @@ class Run:
     def compile(self, state, iteration: int):
         t = time.perf_counter()
         lowered = self.lower(state, iteration)
-        compiled = lowered.compile()
-        secs = time.perf_counter() - t
+        one = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), state)
+        # The FLOP count traces one acting step and one update again (unbatched, ~5 s of Python):
+        # it runs while XLA compiles the chunk with the GIL released.
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="flops") as pool:
+            costs = pool.submit(self.trainer.costs, one)
+            compiled = lowered.compile()
+            secs = time.perf_counter() - t
+            self.budget = trainer_lib.matmul_budget(self.trainer, costs.result())
         cost = trainer_lib.cost_summary(compiled)
-        one = jax.eval_shape(lambda r: jax.tree.map(lambda x: x[0], r), state.replay)
         self.log(
             f"compiled chunk ({self.trainer.iterations_per_chunk} iterations x "
             f"{self.trainer.env_steps_per_iteration} env steps, {self.num_runs} run(s)) in "
-            f"{secs:.1f}s: {cost.get('gflops', float('nan')):.1f} GFLOP/chunk (XLA count, loop "
-            f"bodies once), temp memory {cost.get('temp_mib', float('nan')):.0f} MiB; "
-            f"{replay_lib.describe(one)} per run"
+            f"{secs:.1f}s, temp memory {cost.get('temp_mib', float('nan')):.0f} MiB; "
+            f"{replay_lib.describe(one.replay)} per run"
+        )
+        b = self.budget
+        self.log(
+            f"matmul work per run (loops counted per iteration): planning call "
+            f"{_flop(b['plan_call_gflop_per_env'])}/env, update {_flop(b['update_gflop'])}; "
+            f"steady chunk {_flop(b['chunk_gflop'])}, evaluation {_flop(b['eval_gflop'])}; "
+            f"whole run {_flop(b['run_gflop'])} ({100 * b['run_planning_share']:.0f}% planning)"
         )
         return compiled, secs
 
@@ -346,3 +358,12 @@ class Run:
 
     def close(self) -> None:
         self.ckpt.close()
+
+
+def _flop(gflop: float) -> str:
+    """'31.2 GFLOP', '4.10 TFLOP', '820 MFLOP'."""
+    if gflop >= 1e3:
+        return f"{gflop / 1e3:.2f} TFLOP"
+    if gflop >= 1.0:
+        return f"{gflop:.1f} GFLOP"
+    return f"{gflop * 1e3:.0f} MFLOP"

@@ -19,7 +19,6 @@ resets happen for all envs at once, at episode boundaries. A NaN-physics env end
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -30,6 +29,7 @@ from flax import struct
 from mjx_collo import actor as actor_lib
 from mjx_collo import agent as agent_lib
 from mjx_collo import config as config_lib
+from mjx_collo import flops as flops_lib
 from mjx_collo import planner as planner_lib
 from mjx_collo import replay as replay_lib
 from mjx_collo import value as value_lib
@@ -68,7 +68,10 @@ class Trainer(NamedTuple):
     """Pure functions of one seed (vmap/jit them; see :func:`batched`).
 
     init(key, hyper) -> TrainState; chunk(state, iteration) -> (state, metrics {k: [U]});
-    evaluate(state, key) -> metrics (returns [episodes], qpos [T, nq] of episode 0).
+    evaluate(state, key) -> metrics (returns [episodes], qpos [T, nq] of episode 0);
+    costs(state) -> matmul FLOPs of one acting step that plans (all ``num_envs`` envs) and of one
+    update (:mod:`mjx_collo.flops`; ``state`` may be abstract). ``plan_every``: agent steps between
+    planning calls (1 for the Dreamer actor, which acts every step).
     """
 
     cfg: Config
@@ -78,6 +81,8 @@ class Trainer(NamedTuple):
     iterations_per_chunk: int
     env_steps_per_iteration: int
     episode_agent_steps: int
+    costs: Callable[..., dict[str, flops_lib.FlopCount]]
+    plan_every: int
 
 
 def validate(cfg: Config) -> None:
@@ -437,6 +442,19 @@ def make_train(cfg: Config, env: Any) -> Trainer:
             out["target_xy"] = env_state.info["target_xy"][0]
         return out
 
+    # ---- cost ---------------------------------------------------------------------------------
+
+    def costs(s: TrainState) -> dict[str, flops_lib.FlopCount]:
+        """Matmul FLOPs of an acting step at a planning step (t = 0: observe, plan, act for all
+        envs) and of one update, loops counted per iteration (XLA's count takes each loop body
+        once, so its figure for a chunk is that of one iteration)."""
+        key = jax.random.PRNGKey(0)
+        t0 = jnp.zeros((), jnp.int32)
+        return {
+            "act": flops_lib.matmul_flops(lambda st, k: _policy(st, k, t0, True)[0], s, key),
+            "update": flops_lib.matmul_flops(lambda st, k: _update(st, k)[0], s, key),
+        }
+
     return Trainer(
         cfg=cfg,
         init=init,
@@ -445,6 +463,8 @@ def make_train(cfg: Config, env: Any) -> Trainer:
         iterations_per_chunk=iterations,
         env_steps_per_iteration=per_iter,
         episode_agent_steps=episode_len,
+        costs=costs,
+        plan_every=agent_lib.make_agent(cfg, action_dim).cache_len,
     )
 
 
@@ -568,16 +588,39 @@ def batched(trainer: Trainer, sharding=None):
     )
 
 
+def matmul_budget(trainer: Trainer, costs: dict[str, flops_lib.FlopCount]) -> dict[str, float]:
+    """GFLOP of matmul work by schedule, from :attr:`Trainer.costs`: one planning call per env,
+    one update, a steady chunk (after the prefill), one evaluation, and the whole run.
+
+    Acting steps between planning calls (posterior filter, cached action) are not counted: next
+    to a planning call they are negligible (for the Dreamer actor every step is counted).
+    """
+    run = trainer.cfg.run
+    act, upd = costs["act"].gflops, costs["update"].gflops
+    per_env = act / run.num_envs
+    calls_per_chunk = trainer.iterations_per_chunk / trainer.plan_every
+    updates_per_chunk = run.chunk_env_steps / run.train_every * run.train_steps
+    chunk = calls_per_chunk * act + updates_per_chunk * upd
+    evaluation = trainer.episode_agent_steps / trainer.plan_every * run.eval_episodes * per_env
+    acting_steps = max(run.steps - run.prefill, 0)
+    calls = acting_steps / (trainer.env_steps_per_iteration * trainer.plan_every)
+    updates = run.pretrain + acting_steps / run.train_every * run.train_steps
+    evals = run.steps // run.eval_every
+    return {
+        "plan_call_gflop_per_env": per_env,
+        "update_gflop": upd,
+        "chunk_gflop": chunk,
+        "eval_gflop": evaluation,
+        "run_gflop": calls * act + updates * upd + evals * evaluation,
+        "run_planning_share": (calls * act + evals * evaluation)
+        / max(calls * act + updates * upd + evals * evaluation, 1e-9),
+    }
+
+
 def cost_summary(compiled) -> dict[str, float]:
-    """FLOPs and memory of a compiled program (XLA cost / memory analysis)."""
+    """Memory of a compiled program (XLA memory analysis). Its FLOPs: :func:`matmul_budget`
+    (XLA's cost analysis counts each loop body once)."""
     out: dict[str, float] = {}
-    try:
-        cost = compiled.cost_analysis()
-        if isinstance(cost, list):
-            cost = cost[0]
-        out["gflops"] = float(cost.get("flops", math.nan)) / 1e9
-    except Exception:  # noqa: BLE001 - not every backend reports costs
-        out["gflops"] = math.nan
     try:
         mem = compiled.memory_analysis()
         out["temp_mib"] = mem.temp_size_in_bytes / 2**20

@@ -253,3 +253,26 @@ def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
 def test_incomplete_distributed_arguments_fail_with_one_line(capsys):
     err = _main_error(capsys, ["--env", "reacher", "--distributed", "--coordinator", "h:1234"])
     assert "--num-processes" in err and "--process-id" in err
+
+
+def test_matmul_budget_follows_the_schedule_and_the_planner_settings():
+    """The FLOPs the run prints at start: a steady chunk is its planning calls and updates, and
+    a dearer planner setting shows in the planning call only."""
+
+    def costs(*overrides):
+        cfg = debug_cfg(overrides=overrides)
+        tr = trainer.make_train(cfg, make_env(cfg))
+        c = tr.costs(jax.eval_shape(tr.init, jax.random.PRNGKey(0), {}))
+        return cfg, tr, c
+
+    cfg, tr, c = costs()
+    run = cfg.run
+    b = trainer.matmul_budget(tr, c)
+    assert c["act"].flops > 0 and c["update"].flops > 0
+    calls = tr.iterations_per_chunk / tr.plan_every
+    updates = run.chunk_env_steps / run.train_every * run.train_steps
+    assert b["chunk_gflop"] == pytest.approx(calls * c["act"].gflops + updates * c["update"].gflops)
+    assert b["plan_call_gflop_per_env"] == pytest.approx(c["act"].gflops / run.num_envs)
+    _, _, c2 = costs(f"planner.iters={2 * cfg.planner.iters}")
+    assert c2["act"].flops > c["act"].flops
+    assert c2["update"].flops == c["update"].flops
