@@ -40,6 +40,7 @@ from mjx_collo import agent as agent_lib
 from mjx_collo import config, runner
 from mjx_collo import trainer as trainer_lib
 from mjx_collo import world_model as wm_lib
+from mjx_collo.flops import matmul_flops
 from mjx_collo.planners.protocol import rollout
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -108,6 +109,41 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     ),
     # Collocation started from a small CEM on the same objective (the default: 100x4, K=50).
     "cem init 100x4 only (K=0)": ("collodreamer", NO_VALUE + ["planner.iters=0"]),
+    # Smaller CEM starts: the start is 80% of the default call's matmul FLOPs (bench_planner).
+    "collocation default, cem init 50x4": (
+        "collodreamer",
+        NO_VALUE + ["planner.init_cem.samples=50", "planner.init_cem.elites=5"],
+    ),
+    "collocation default, cem init 100x2": (
+        "collodreamer",
+        NO_VALUE + ["planner.init_cem.iters=2"],
+    ),
+    "collocation default, cem init 50x2": (
+        "collodreamer",
+        NO_VALUE
+        + ["planner.init_cem.samples=50", "planner.init_cem.elites=5", "planner.init_cem.iters=2"],
+    ),
+    "collocation default, cem init 50x6": (
+        "collodreamer",
+        NO_VALUE
+        + ["planner.init_cem.samples=50", "planner.init_cem.elites=5", "planner.init_cem.iters=6"],
+    ),
+    "collocation default, cem init 30x6": (
+        "collodreamer",
+        NO_VALUE
+        + ["planner.init_cem.samples=30", "planner.init_cem.elites=3", "planner.init_cem.iters=6"],
+    ),
+    "collocation default, cem init 30x8": (
+        "collodreamer",
+        NO_VALUE
+        + ["planner.init_cem.samples=30", "planner.init_cem.elites=3", "planner.init_cem.iters=8"],
+    ),
+    "collocation default, cem init 20x10": (
+        "collodreamer",
+        NO_VALUE
+        + ["planner.init_cem.samples=20", "planner.init_cem.elites=2", "planner.init_cem.iters=10"],
+    ),
+    "collocation default, K=25": ("collodreamer", NO_VALUE + ["planner.iters=25"]),
     "cem 100x4": (
         "cem",
         ["planner.shooting.samples=100", "planner.shooting.elites=10", "planner.shooting.iters=4"],
@@ -186,6 +222,12 @@ def model_section(name: str, method: str, overrides: list[str], params, ctxs) ->
         return shadow(planner.actions(plan), ctx), shadow(planner.actions(start), ctx), m
 
     keys = jax.random.split(jax.random.PRNGKey(5), jax.tree.leaves(ctxs)[0].shape[0])
+
+    def call(ctx, key):  # the planning call alone, for its FLOPs
+        k1, k2 = jax.random.split(key)
+        return planner.optimize(pp, ctx, planner.init(pp, ctx, k1), k2)[0]
+
+    gflop = matmul_flops(call, jax.tree.map(lambda x: x[0], ctxs), keys[0]).gflops
     t = time.perf_counter()
     fn = jax.jit(jax.vmap(one)).lower(ctxs, keys).compile()
     compile_s = time.perf_counter() - t
@@ -204,11 +246,12 @@ def model_section(name: str, method: str, overrides: list[str], params, ctxs) ->
         "dyn_viol": float(np.mean(m["dyn_viol"])),
         "compile_s": compile_s,
         "ms_per_call_per_ctx": ms,
+        "gflop_per_call": gflop,  # matmul FLOPs, loops counted per iteration (mjx_collo.flops)
     }
     print(
         f"  {name:<40} shadow {row['shadow_return']:6.2f} ± {row['shadow_return_sem']:.2f} "
         f"(initial {row['initial_shadow_return']:.2f}, plan {row['plan_return']:6.2f}, "
-        f"viol {row['dyn_viol']:.3f})  {ms:7.1f} ms/call/ctx",
+        f"viol {row['dyn_viol']:.3f})  {ms:7.1f} ms/call/ctx  {gflop:6.2f} GFLOP/call",
         flush=True,
     )
     return row
