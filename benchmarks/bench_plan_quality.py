@@ -109,40 +109,8 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     ),
     # Collocation started from a small CEM on the same objective (the default: 100x4, K=50).
     "cem init 100x4 only (K=0)": ("collodreamer", NO_VALUE + ["planner.iters=0"]),
-    # Smaller CEM starts: the start is 80% of the default call's matmul FLOPs (bench_planner).
-    "collocation default, cem init 50x4": (
-        "collodreamer",
-        NO_VALUE + ["planner.init_cem.samples=50", "planner.init_cem.elites=5"],
-    ),
-    "collocation default, cem init 100x2": (
-        "collodreamer",
-        NO_VALUE + ["planner.init_cem.iters=2"],
-    ),
-    "collocation default, cem init 50x2": (
-        "collodreamer",
-        NO_VALUE
-        + ["planner.init_cem.samples=50", "planner.init_cem.elites=5", "planner.init_cem.iters=2"],
-    ),
-    "collocation default, cem init 50x6": (
-        "collodreamer",
-        NO_VALUE
-        + ["planner.init_cem.samples=50", "planner.init_cem.elites=5", "planner.init_cem.iters=6"],
-    ),
-    "collocation default, cem init 30x6": (
-        "collodreamer",
-        NO_VALUE
-        + ["planner.init_cem.samples=30", "planner.init_cem.elites=3", "planner.init_cem.iters=6"],
-    ),
-    "collocation default, cem init 30x8": (
-        "collodreamer",
-        NO_VALUE
-        + ["planner.init_cem.samples=30", "planner.init_cem.elites=3", "planner.init_cem.iters=8"],
-    ),
-    "collocation default, cem init 20x10": (
-        "collodreamer",
-        NO_VALUE
-        + ["planner.init_cem.samples=20", "planner.init_cem.elites=2", "planner.init_cem.iters=10"],
-    ),
+    # Smaller CEM starts (samples x iterations, elites 10%; added below): the start is 80% of the
+    # default call's matmul FLOPs (bench_planner).
     "collocation default, K=25": ("collodreamer", NO_VALUE + ["planner.iters=25"]),
     "cem 100x4": (
         "cem",
@@ -154,6 +122,20 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     ),
 }
 
+
+def _cem_start(samples: int, iters: int) -> tuple[str, list[str]]:
+    """The default collocation after a CEM start of ``samples`` x ``iters`` (elites 10%)."""
+    cem = ["planner.init_cem.samples", "planner.init_cem.elites", "planner.init_cem.iters"]
+    values = (samples, max(samples // 10, 1), iters)
+    return "collodreamer", NO_VALUE + [f"{k}={v}" for k, v in zip(cem, values, strict=True)]
+
+
+CONFIGS.update(
+    {
+        f"collocation default, cem init {n}x{k}": _cem_start(n, k)
+        for n, k in ((50, 4), (100, 2), (50, 2), (50, 6), (30, 6), (30, 8), (20, 10))
+    }
+)
 
 # One cold call per context cannot show a warm start: these only run in the env section.
 ENV_ONLY = {"adam K=200 lr=0.015 warm"}
