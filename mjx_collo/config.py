@@ -221,7 +221,7 @@ class Config(Section):
 
 
 # --------------------------------------------------------------------------------------------
-# Loading: defaults.yaml -> task overlay -> method overlay -> presets -> dotted overrides
+# Loading: defaults.yaml -> method overlay -> task overlay -> presets -> dotted overrides
 # --------------------------------------------------------------------------------------------
 
 

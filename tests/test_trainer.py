@@ -223,6 +223,19 @@ def test_config_inconsistency_names_the_fix():
     trainer.validate(debug_cfg(overrides=["planner.solver=gauss_newton", "planner.value_lambda=1"]))
 
 
+def test_task_overlay_sits_between_the_method_and_the_users_overrides():
+    """configs/task/<task>.yaml changes only what it names, for that task, and an override wins."""
+    reacher = config.load(task="reacher_easy")
+    cheetah = config.load(task="cheetah_run")
+    assert reacher.wm.loss_scales.reward == 10.0 and cheetah.wm.loss_scales.reward == 1.0
+    assert reacher.wm.loss_scales.obs == cheetah.wm.loss_scales.obs == 1.0
+    assert config.load(task="reacher_easy", method="latco").wm.loss_scales.reward == 10.0
+    mine = config.load(task="reacher_easy", overrides=["wm.loss_scales.reward=3"])
+    assert mine.wm.loss_scales.reward == 3.0
+    for name in config.available_presets("task"):
+        config.load(task=name)  # every overlay names real keys with the right types
+
+
 def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
     """A seed axis of size 1 is dropped (batched dots are slow on XLA's CPU backend): same
     numbers as the vmapped program, no batch dimension in any dot, the axis back on the output."""
