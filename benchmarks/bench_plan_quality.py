@@ -54,11 +54,16 @@ NO_VALUE = ["value.bootstrap=false"]
 # Rows other than the default start from small random actions (planner.init=rollout), as they
 # were measured before the default became the CEM start (planner.init=cem, 50 iterations).
 COLD = NO_VALUE + ["planner.init=rollout"]
-CEM_100X4 = [
-    "planner.init_cem.samples=100",
-    "planner.init_cem.elites=10",
-    "planner.init_cem.iters=4",
-]
+
+
+def _cem_overrides(samples: int, iters: int) -> list[str]:
+    """A CEM start of ``samples`` x ``iters`` with 10% elites, as ``planner.init_cem`` overrides."""
+    cem = ["planner.init_cem.samples", "planner.init_cem.elites", "planner.init_cem.iters"]
+    values = (samples, max(samples // 10, 1), iters)
+    return [f"{k}={v}" for k, v in zip(cem, values, strict=True)]
+
+
+CEM_100X4 = _cem_overrides(100, 4)  # the previous default's start
 CONFIGS: dict[str, tuple[str, list[str]]] = {
     "collocation default": ("collodreamer", NO_VALUE),
     "adam K=200 lr=0.015 cold (old default)": ("collodreamer", COLD + ["planner.iters=200"]),
@@ -131,9 +136,7 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
 
 def _cem_start(samples: int, iters: int) -> tuple[str, list[str]]:
     """The default collocation after a CEM start of ``samples`` x ``iters`` (elites 10%)."""
-    cem = ["planner.init_cem.samples", "planner.init_cem.elites", "planner.init_cem.iters"]
-    values = (samples, max(samples // 10, 1), iters)
-    return "collodreamer", NO_VALUE + [f"{k}={v}" for k, v in zip(cem, values, strict=True)]
+    return "collodreamer", NO_VALUE + _cem_overrides(samples, iters)
 
 
 CONFIGS.update(
