@@ -82,6 +82,9 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
         ctx_feat=lambda p, ctx: fns.ctx_feat(p[0], ctx),
         step_reward=lambda p, z, a: fns.step_reward(p[0], z, a),
         step_reward_value=None if value is None else step_reward_value,
+        step_feat=lambda p, z, a: fns.step_feat(p[0], z, a),
+        feat_reward=lambda p, f: fns.feat_reward(p[0], f),
+        feat_value=None if value is None else (lambda p, f: value(p[1], f)),
     )
     return Agent(cfg, action_dim, fns, model, planner_lib.make_planner(cfg, model, action_dim))
 

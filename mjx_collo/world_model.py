@@ -885,6 +885,9 @@ class PlanningFns(NamedTuple):
       space computes the prior m(h) once for the two; ~15% of a collocation iteration);
     step_reward_feat(wm_params, z [Z], a [A]) -> (step(z, a), reward(z), feat(z)): the same pass
       with the features too, for planners that also read a value of ``feat(z)``;
+    step_feat(wm_params, z [Z], a [A]) -> (step(z, a), feat(z)): the pass without the reward head,
+      for rollouts that read the heads of all their states afterwards in one batched call;
+    feat_reward(wm_params, f [F]) -> []: the reward head on features;
     size: Z.
     """
 
@@ -897,6 +900,8 @@ class PlanningFns(NamedTuple):
     step_reward_feat: Callable[
         [Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]
     ]
+    step_feat: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]
+    feat_reward: Callable[[Params, jax.Array], jax.Array]
     size: int
 
 
@@ -926,6 +931,9 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
         def feat(p: Params, z: jax.Array) -> jax.Array:
             return z
 
+        def step_feat(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+            return step(p, z, a), z
+
         size = s_dim + cfg.deter
     elif space == "reduced":
 
@@ -938,12 +946,9 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
         def feat(p: Params, z: jax.Array) -> jax.Array:
             return jnp.concatenate([prior_mean(cfg, p, z), z], -1)
 
-        def step_reward_feat(
-            p: Params, z: jax.Array, a: jax.Array
-        ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        def step_feat(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
             m = prior_mean(cfg, p, z)
-            f = jnp.concatenate([m, z], -1)
-            return _transition(cfg, p, m, z, a), reward(cfg, p, f), f
+            return _transition(cfg, p, m, z, a), jnp.concatenate([m, z], -1)
 
         size = cfg.deter
     else:
@@ -952,12 +957,14 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
     def rew(p: Params, z: jax.Array) -> jax.Array:
         return reward(cfg, p, feat(p, z))
 
-    if space == "full":
+    def feat_reward(p: Params, f: jax.Array) -> jax.Array:
+        return reward(cfg, p, f)
 
-        def step_reward_feat(
-            p: Params, z: jax.Array, a: jax.Array
-        ) -> tuple[jax.Array, jax.Array, jax.Array]:
-            return step(p, z, a), rew(p, z), z
+    def step_reward_feat(
+        p: Params, z: jax.Array, a: jax.Array
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        nz, f = step_feat(p, z, a)
+        return nz, feat_reward(p, f), f
 
     def step_reward(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
         nz, r, _ = step_reward_feat(p, z, a)
@@ -971,6 +978,8 @@ def planning_fns(cfg: WorldModelConfig, space: str) -> PlanningFns:
         ctx_feat=ctx_feat,
         step_reward=step_reward,
         step_reward_feat=step_reward_feat,
+        step_feat=step_feat,
+        feat_reward=feat_reward,
         size=size,
     )
 

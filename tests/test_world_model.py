@@ -660,7 +660,8 @@ def test_world_model_beats_copy_last_on_held_out_cheetah(latent):
 @pytest.mark.parametrize("space", ["full", "reduced"])
 def test_shared_pass_gives_the_values_and_gradients_of_separate_calls(space):
     """The lambda-return planners read V at every plan state through ``step_reward_value`` (one
-    feature pass per state for transition, reward and value). Rollout, predictions, rewards,
+    feature pass per state for transition, reward and value), and rollouts read both heads after
+    the loop, batched over the plan's states (``step_feat``). Rollout, predictions, rewards,
     values and the objective's gradient equal those of calling step, reward and value apart."""
     from mjx_collo.planners import objective as obj
     from mjx_collo.planners import protocol as proto
@@ -673,11 +674,18 @@ def test_shared_pass_gives_the_values_and_gradients_of_separate_calls(space):
         return jnp.tanh(f @ vp) * 3.0
 
     base = proto.LatentModel(
-        start=fns.start, step=fns.step, reward=fns.reward, step_reward=fns.step_reward
+        start=fns.start,
+        step=fns.step,
+        reward=fns.reward,
+        feat=fns.feat,
+        step_reward=fns.step_reward,
+        step_feat=fns.step_feat,
+        feat_reward=fns.feat_reward,
     )
-    shared = proto.attach_value(base, fns.feat, value, fns.step_reward_feat)
+    batched = proto.attach_value(base, fns.feat, value, fns.step_reward_feat)
+    shared = batched._replace(step_feat=None)
     apart = shared._replace(step_reward_value=None, step_reward=None)
-    assert shared.step_reward_value is not None
+    assert shared.step_reward_value is not None and batched.feat_value is not None
     ctx = jax.tree.map(lambda x: x[0, -1], post)
     acts = jax.random.uniform(jax.random.key(6), (7, ACT), minval=-1, maxval=1)
     p = (params, vp)
@@ -688,17 +696,21 @@ def test_shared_pass_gives_the_values_and_gradients_of_separate_calls(space):
     @jax.jit
     def run(acts):
         out = {}
-        for name, model in (("shared", shared), ("apart", apart)):
+        for name, model in (("batched", batched), ("shared", shared), ("apart", apart)):
             z, r, v = proto.rollout_rewards_values(model, p, ctx, acts)
+            zr = proto.rollout_rewards(model, p, ctx, acts)  # the value-free rollout
             zs = z + 0.01  # off the rollout: predictions differ from the plan states
             prob = problem(model)
             pred, pr, pv = obj.predict_rewards_values(prob, zs, acts)
             grad = jax.grad(lambda zz, prob=prob: obj.exact_terms(prob, zz, acts)[0])(zs)
-            out[name] = (z, r, v, pred, pr, pv, grad, obj.rollout_return(prob, acts))
+            out[name] = (z, r, v, pred, pr, pv, grad, obj.rollout_return(prob, acts), zr)
         return out
 
     o = run(acts)
+    for name in o:
+        _close(o[name][-1], o[name][:2])
     _close(o["shared"], o["apart"])
+    _close(o["batched"], o["apart"])
     z, r, v = o["apart"][:3]
     _close(v, jax.vmap(lambda zz: value(vp, fns.feat(params, zz)))(z))
     assert float(jnp.std(v)) > 1e-3 and float(jnp.abs(o["apart"][6]).max()) > 0

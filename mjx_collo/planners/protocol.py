@@ -42,6 +42,12 @@ class LatentModel(NamedTuple):
       step_reward_value: optional ``(params, z, a) -> (step(z, a), reward(z), value(z))`` in one
         pass (the value read off the same features), for objectives that read V at every plan
         state (``planner.value_lambda < 1``). None: ``value`` is called separately.
+      step_feat: optional ``(params, z, a) -> (step(z, a), feat(z))`` in one pass, with
+        ``feat_reward`` ``(params, f [F]) -> []`` (and ``feat_value``, the value of a feature, for
+        models with a value): rollouts then scan only the transitions and read the reward (and
+        value) heads of all H states afterwards in one batched call, instead of H small calls
+        inside the sequential loop (the heads are half of a rollout's FLOPs). None: the heads
+        run inside the loop (``step_reward`` / ``step_reward_value``).
     """
 
     start: Callable[[Params, Context, jax.Array], jax.Array]
@@ -54,6 +60,9 @@ class LatentModel(NamedTuple):
     step_reward_value: (
         Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array, jax.Array]] | None
     ) = None
+    step_feat: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]] | None = None
+    feat_reward: Callable[[Params, jax.Array], jax.Array] | None = None
+    feat_value: Callable[[Params, jax.Array], jax.Array] | None = None
 
 
 def attach_value(
@@ -66,13 +75,14 @@ def attach_value(
 
     Args:
       model: world-model functions over ``wm_params`` (its own ``value`` is replaced; its
-        ``ctx_feat`` is kept).
+        ``ctx_feat``, ``step_feat`` and ``feat_reward`` are kept).
       feat: ``(wm_params, z [Z]) -> [F]``.
       value: ``(value_params, f [F]) -> []`` deterministic (target) value network.
       step_reward_feat: optional ``(wm_params, z, a) -> (step(z, a), reward(z), feat(z))`` in one
         pass; gives the model its ``step_reward_value``.
     """
     ctx_feat, step_reward = model.ctx_feat, model.step_reward
+    step_feat, feat_reward = model.step_feat, model.feat_reward
     srv = None
     if step_reward_feat is not None:
 
@@ -89,6 +99,9 @@ def attach_value(
         ctx_feat=None if ctx_feat is None else (lambda p, ctx: ctx_feat(p[0], ctx)),
         step_reward=None if step_reward is None else (lambda p, z, a: step_reward(p[0], z, a)),
         step_reward_value=srv,
+        step_feat=None if step_feat is None else (lambda p, z, a: step_feat(p[0], z, a)),
+        feat_reward=None if feat_reward is None else (lambda p, f: feat_reward(p[0], f)),
+        feat_value=lambda p, f: value(p[1], f),
     )
 
 
@@ -117,12 +130,40 @@ def rollout(model: LatentModel, params: Params, ctx: Context, actions: jax.Array
     return jnp.concatenate([z1[None], rest], axis=0)
 
 
+def _batched_heads(model: LatentModel, value: bool) -> bool:
+    """Whether rollouts can read the heads after the loop (see ``LatentModel.step_feat``)."""
+    ok = None not in (model.step_feat, model.feat_reward, model.feat)
+    return ok and (model.feat_value is not None or not value)
+
+
+def rollout_feats(
+    model: LatentModel, params: Params, ctx: Context, actions: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """:func:`rollout` and the features of its states: z [H, Z], feat(z_k) [H, F]. The loop
+    carries only the transitions (``step_feat``: each state's features come out of the pass that
+    steps it); the last state's features are computed after the loop."""
+    z1 = model.start(params, ctx, actions[0])
+
+    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        nz, f = model.step_feat(params, z, a)
+        return nz, (nz, f)
+
+    z_last, (rest, f_head) = jax.lax.scan(body, z1, actions[1:])
+    z = jnp.concatenate([z1[None], rest], axis=0)
+    f = jnp.concatenate([f_head, model.feat(params, z_last)[None]], axis=0)
+    return z, f
+
+
 def rollout_rewards(
     model: LatentModel, params: Params, ctx: Context, actions: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """:func:`rollout` and the rewards r(z_k) [H] of its states in one pass: with the model's
     ``step_reward`` each state's shared work (the reduced RSSM space: its prior) is done once
-    for its transition and its reward, instead of once in the rollout and again for the reward."""
+    for its transition and its reward, instead of once in the rollout and again for the reward;
+    with ``step_feat`` and ``feat_reward`` the rewards are read after the loop, batched."""
+    if _batched_heads(model, value=False):
+        z, f = rollout_feats(model, params, ctx, actions)
+        return z, jax.vmap(model.feat_reward, in_axes=(None, 0))(params, f)
     if model.step_reward is None:
         z = rollout(model, params, ctx, actions)
         return z, jax.vmap(model.reward, in_axes=(None, 0))(params, z)
@@ -142,7 +183,12 @@ def rollout_rewards_values(
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
     """:func:`rollout` with the rewards and (unclipped) values of its states [H]: with the
     model's ``step_reward_value`` each state's features are computed once for its transition,
-    reward and value."""
+    reward and value (with ``step_feat``, ``feat_reward`` and ``feat_value``: the features in the
+    loop, both heads after it, batched over the H states)."""
+    if _batched_heads(model, value=True):
+        z, f = rollout_feats(model, params, ctx, actions)
+        r = jax.vmap(model.feat_reward, in_axes=(None, 0))(params, f)
+        return z, r, jax.vmap(model.feat_value, in_axes=(None, 0))(params, f)
     if model.step_reward_value is None:
         z, r = rollout_rewards(model, params, ctx, actions)
         return z, r, jax.vmap(model.value, in_axes=(None, 0))(params, z)
