@@ -84,6 +84,8 @@ def build(cfg: Config, key: jax.Array) -> tuple[LatentModel, Any]:
         feat=fns.feat,
         ctx_feat=fns.ctx_feat,
         step_reward=fns.step_reward,
+        step_feat=fns.step_feat,  # as the trainer's model (agent.make_agent): batched heads
+        feat_reward=fns.feat_reward,
     )
     vstate = value_lib.init_value(cfg.value, k_v, wm.feat_size(cfg.wm))
     value_fn = lambda vp, f: value_lib.apply_value(cfg.value, vp, f)

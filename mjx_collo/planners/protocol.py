@@ -112,6 +112,22 @@ def latent_size(model: LatentModel, params: Params, ctx: Context, action_dim: in
     return int(out.shape[-1])
 
 
+def _scan_states(
+    model: LatentModel, params: Params, ctx: Context, actions: jax.Array, step_out: Callable
+) -> tuple[jax.Array, Any, jax.Array]:
+    """The one rollout loop: z_1 = start(ctx, a_0), then ``step_out(params, z_t, a_t) ->
+    (z_{t+1}, out_t)`` for t = 1..H-1. Returns (z [H, Z], the outs of z_1..z_{H-1} stacked,
+    z_H)."""
+    z1 = model.start(params, ctx, actions[0])
+
+    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, Any]]:
+        nz, out = step_out(params, z, a)
+        return nz, (nz, out)
+
+    z_last, (rest, outs) = jax.lax.scan(body, z1, actions[1:])
+    return jnp.concatenate([z1[None], rest], axis=0), outs, z_last
+
+
 def rollout(model: LatentModel, params: Params, ctx: Context, actions: jax.Array) -> jax.Array:
     """Feasible latent trajectory under ``actions``.
 
@@ -120,14 +136,8 @@ def rollout(model: LatentModel, params: Params, ctx: Context, actions: jax.Array
     Returns:
       z: [H, Z] states z_1..z_H (z_1 = start(ctx, a_0), z_{t+1} = step(z_t, a_t)).
     """
-    z1 = model.start(params, ctx, actions[0])
-
-    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
-        nz = model.step(params, z, a)
-        return nz, nz
-
-    _, rest = jax.lax.scan(body, z1, actions[1:])
-    return jnp.concatenate([z1[None], rest], axis=0)
+    z, _, _ = _scan_states(model, params, ctx, actions, lambda p, z, a: (model.step(p, z, a), ()))
+    return z
 
 
 def _batched_heads(model: LatentModel, value: bool) -> bool:
@@ -142,16 +152,8 @@ def rollout_feats(
     """:func:`rollout` and the features of its states: z [H, Z], feat(z_k) [H, F]. The loop
     carries only the transitions (``step_feat``: each state's features come out of the pass that
     steps it); the last state's features are computed after the loop."""
-    z1 = model.start(params, ctx, actions[0])
-
-    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
-        nz, f = model.step_feat(params, z, a)
-        return nz, (nz, f)
-
-    z_last, (rest, f_head) = jax.lax.scan(body, z1, actions[1:])
-    z = jnp.concatenate([z1[None], rest], axis=0)
-    f = jnp.concatenate([f_head, model.feat(params, z_last)[None]], axis=0)
-    return z, f
+    z, f_head, z_last = _scan_states(model, params, ctx, actions, model.step_feat)
+    return z, jnp.concatenate([f_head, model.feat(params, z_last)[None]], axis=0)
 
 
 def rollout_rewards(
@@ -167,14 +169,7 @@ def rollout_rewards(
     if model.step_reward is None:
         z = rollout(model, params, ctx, actions)
         return z, jax.vmap(model.reward, in_axes=(None, 0))(params, z)
-    z1 = model.start(params, ctx, actions[0])
-
-    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
-        nz, r = model.step_reward(params, z, a)
-        return nz, (nz, r)
-
-    z_last, (rest, r_head) = jax.lax.scan(body, z1, actions[1:])
-    z = jnp.concatenate([z1[None], rest], axis=0)
+    z, r_head, z_last = _scan_states(model, params, ctx, actions, model.step_reward)
     return z, jnp.concatenate([r_head, model.reward(params, z_last)[None]], axis=0)
 
 
@@ -192,15 +187,13 @@ def rollout_rewards_values(
     if model.step_reward_value is None:
         z, r = rollout_rewards(model, params, ctx, actions)
         return z, r, jax.vmap(model.value, in_axes=(None, 0))(params, z)
-    z1 = model.start(params, ctx, actions[0])
 
-    def body(z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple[jax.Array, ...]]:
-        nz, r, v = model.step_reward_value(params, z, a)
-        return nz, (nz, r, v)
+    def step_out(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, tuple]:
+        nz, r, v = model.step_reward_value(p, z, a)
+        return nz, (r, v)
 
-    z_last, (rest, r_head, v_head) = jax.lax.scan(body, z1, actions[1:])
+    z, (r_head, v_head), z_last = _scan_states(model, params, ctx, actions, step_out)
     r_last, v_last = last_reward_value(model, params, z_last, actions[0])
-    z = jnp.concatenate([z1[None], rest], axis=0)
     return z, jnp.append(r_head, r_last), jnp.append(v_head, v_last)
 
 
