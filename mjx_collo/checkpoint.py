@@ -72,6 +72,22 @@ def _fill_empty(abstract: Any, restored: Any) -> Any:
     return jax.tree.map(fill, abstract, restored, is_leaf=lambda x: x is None)
 
 
+def _on_this_host(abstract: Any) -> Any:
+    """Give every leaf without a sharding this process's first device.
+
+    Without one, Orbax restores each array onto the devices it was saved from, so a checkpoint
+    written by a run whose seeds were sharded over 2 devices (``SEEDS=2`` on a 2-core CPU, or a GPU
+    node) could not be evaluated or resumed where there is only one ("Topology mismatch")."""
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+
+    def place(x):
+        if getattr(x, "sharding", None) is not None:
+            return x
+        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device)
+
+    return None if abstract is None else jax.tree.map(place, abstract)
+
+
 def _step_dir(path: Path) -> tuple[Path, int | None]:
     """``<run>`` or ``<run>/checkpoints`` or ``<run>/checkpoints/<step>`` -> (manager dir, step)."""
     path = Path(path)
@@ -166,6 +182,8 @@ class Checkpointer:
         saved. Returns (train, replay or None, meta)."""
         step = self._resolve(step)
         meta = self.meta(step)
+        abstract_train = _on_this_host(abstract_train)
+        abstract_replay = _on_this_host(abstract_replay)
         items = {"train": ocp.args.StandardRestore(_strip_empty(abstract_train))}
         if abstract_replay is not None and meta.get("has_replay"):
             items["replay"] = ocp.args.StandardRestore(_strip_empty(abstract_replay))

@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from mjx_collo import checkpoint, config
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _state(w):
@@ -68,4 +75,39 @@ def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
         ]
     )
     assert ck.config(10).planner.refine_iters == 7  # a config that has the key keeps its value
+    ck.close()
+
+
+_SAVE_SHARDED = """
+import sys, jax, jax.numpy as jnp, numpy as np
+from mjx_collo import checkpoint, config
+assert jax.device_count() == 2, jax.devices()
+mesh = jax.sharding.Mesh(np.array(jax.devices()), ("seed",))
+sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seed"))
+state = {"w": jax.device_put(jnp.arange(8.0).reshape(2, 4), sharded), "count": jnp.int32(3)}
+ck = checkpoint.Checkpointer(sys.argv[1], keep=3)
+assert ck.save(10, state, None, config.load(task="reacher_easy", presets=["debug"]), {})
+ck.close()
+"""
+
+
+def test_a_checkpoint_saved_sharded_over_two_devices_restores_on_one(tmp_path):
+    """A run whose seeds were sharded over 2 devices (``SEEDS=2`` on 2 CPU cores, a GPU node) must
+    evaluate and resume on a machine with one: Orbax would otherwise put the arrays back on the
+    devices they were saved from and stop with "Topology mismatch"."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env["PYTHONPATH"] = f"{ROOT}{os.pathsep}{env.get('PYTHONPATH', '')}"
+    proc = subprocess.run(
+        [sys.executable, "-c", _SAVE_SHARDED, str(tmp_path / "checkpoints")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    ck = checkpoint.Checkpointer(tmp_path / "checkpoints", read_only=True)
+    abstract = jax.eval_shape(lambda: {"w": jnp.zeros((2, 4)), "count": jnp.int32(0)})
+    train, _, _ = ck.restore(abstract)
+    np.testing.assert_array_equal(np.asarray(train["w"]), np.arange(8.0).reshape(2, 4))
+    assert train["w"].sharding.device_set == {jax.local_devices()[0]}
     ck.close()
