@@ -50,7 +50,10 @@ class RunLog:
         ``progress=False`` prints one plain line per update instead of the bar (log files)."""
         self.enabled = enabled
         self.plain = enabled and not progress
-        self.total, self._t0, self._step0 = total_steps, time.perf_counter(), start_step
+        self.total, self._t0 = total_steps, time.perf_counter()
+        # The plain ETA's rate is measured from the first progress call: the first chunk (the
+        # random-action prefill) runs ~30x faster than training and made early ETAs ~25% short.
+        self._rate_from: tuple[float, int] | None = None
         self.latest: dict[str, float] = {}
         self.bar = tqdm(
             total=total_steps,
@@ -116,13 +119,17 @@ class RunLog:
         self.bar.set_postfix(post, refresh=False)
         self.bar.update(max(0, step - self.bar.n))
         if self.plain:
-            elapsed = time.perf_counter() - self._t0
-            rate = (step - self._step0) / max(elapsed, 1e-9)
+            now = time.perf_counter()
+            elapsed = now - self._t0
+            if self._rate_from is None:
+                self._rate_from = (now, step)
+            t_from, step_from = self._rate_from
+            rate = (step - step_from) / max(now - t_from, 1e-9)
             eta = (self.total - step) / rate if rate > 0 else float("nan")
             fields = " ".join(f"{k} {v}" for k, v in post.items())
             print(
                 f"step {step}/{self.total} {fields} elapsed {elapsed / 60:.1f}min "
-                f"eta {eta / 60:.1f}min",
+                f"eta {f'{eta / 60:.1f}min' if math.isfinite(eta) else '-'}",
                 flush=True,
             )
 
