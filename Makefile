@@ -12,6 +12,8 @@ RUN     ?=
 ARGS    ?=
 SWEEP   ?=
 CKPT    ?=
+RUNS    ?=
+OUT     ?=
 EPISODES ?= 10
 VIDEO   ?= 0
 PYTEST_ARGS ?=
@@ -22,7 +24,7 @@ TEST_WORKERS ?= 2
 # Quiet noisy deprecation chatter from dependencies.
 export PYTHONWARNINGS ?= ignore::DeprecationWarning
 
-.PHONY: install train sweep eval test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
+.PHONY: install train sweep eval combine test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
 
 install: $(STAMP)
 
@@ -43,6 +45,10 @@ sweep: install
 
 eval: install
 	$(PY) evaluate.py --ckpt $(CKPT) --episodes $(EPISODES) $(if $(filter 1,$(VIDEO)),--video) $(ARGS)
+
+# Seeds trained in separate runs as one curve + summary.json: make combine RUNS="dir1 dir2" OUT=dir
+combine: install
+	$(PY) -m mjx_collo.combine $(RUNS) --out $(OUT) $(ARGS)
 
 # The CI suite: everything not marked slow (< 15 min on 2 cores).
 test: install
