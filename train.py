@@ -157,6 +157,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"seed axis sharded over {devices.size} {devices.flat[0].platform} devices "
                 f"({r.num_runs // devices.size} run(s) each)"
             )
+        if r.eval_device is not None:
+            print(
+                f"evaluations run on {r.eval_device.platform} device {r.eval_device.id} while the "
+                "next chunk trains (run.eval_overlap=false: in line, on the training device)"
+            )
         result = r.run()
         r.close()
     except (CheckpointError, config.ConfigError) as e:

@@ -25,7 +25,9 @@ from mjx_collo import config as config_lib
 from mjx_collo.config import Config, ConfigError
 
 FORMAT_VERSION = 1
-RESUMABLE = ("run.steps:",)  # config keys that may change between a run and its resume
+# Config keys that may change between a run and its resume: how far to train, and where the
+# evaluations run (not what they compute).
+RESUMABLE = ("run.steps:", "run.eval_overlap:")
 
 
 class CheckpointError(RuntimeError):
@@ -166,7 +168,6 @@ class Checkpointer:
     def check_config(self, cfg: Config, step: int | None = None) -> None:
         """Raise :class:`CheckpointError` naming what differs if ``cfg`` is not the saved one."""
         saved = self.config(step)
-        # How far to train is not part of the run's identity: extending a run is a resume.
         diffs = [d for d in config_lib.diff(saved, cfg) if not d.startswith(RESUMABLE)]
         if diffs:
             shown = "; ".join(diffs[:8]) + (" ..." if len(diffs) > 8 else "")

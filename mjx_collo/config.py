@@ -59,6 +59,7 @@ class RunConfig(Section):
     save_replay: bool
     max_nonfinite: int
     seed: int
+    eval_overlap: bool
 
 
 class ReplayConfig(Section):
@@ -322,6 +323,7 @@ ADDED_KEYS: dict[str, Any] = {
     "planner.refine_lr": 0.05,
     "planner.init_cem": {"samples": 100, "elites": 10, "iters": 4, "std": 1.0},
     "planner.value_lambda": 1.0,
+    "run.eval_overlap": False,
 }
 
 

@@ -10,6 +10,9 @@ device), and the seeds' programs run side by side on the cores.
 Must run before JAX initialises its backends. Only the CPU platform reads the flag: on a GPU or
 TPU host the accelerators stay the devices. An ``XLA_FLAGS`` that already sets the count wins.
 Imports nothing from JAX.
+
+A single run gets two devices: it trains on the first, and its evaluations run on the second while
+the next chunk trains (``run.eval_overlap``; ``runner.Run``), filling the cores one seed leaves idle.
 """
 
 from __future__ import annotations
@@ -32,15 +35,16 @@ def device_count_for(num_runs: int, max_devices: int = MAX_DEVICES) -> int:
 def configure(num_runs: int, environ: dict[str, str] | None = None) -> int | None:
     """Add the device-count flag for ``num_runs`` to ``XLA_FLAGS`` unless it is set already.
 
-    Returns the device count it set, or None when it left ``XLA_FLAGS`` alone (one run, the
-    user's own count, or JAX already imported in this process: the flag would have no effect
-    here and would only leak into subprocesses, e.g. when tests call ``train.main``).
+    One run gets 2 devices (training and its overlapped evaluations). Returns the device count it
+    set, or None when it left ``XLA_FLAGS`` alone (a count of 1, the user's own count, or JAX
+    already imported in this process: the flag would have no effect here and would only leak
+    into subprocesses, e.g. when tests call ``train.main``).
     """
     if environ is None and "jax" in sys.modules:
         return None
     env = os.environ if environ is None else environ
     flags = env.get("XLA_FLAGS", "")
-    n = device_count_for(num_runs)
+    n = 2 if num_runs == 1 else device_count_for(num_runs)
     if n == 1 or FLAG in flags:
         return None
     env["XLA_FLAGS"] = f"{flags} --{FLAG}={n}".strip()

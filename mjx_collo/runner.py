@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import signal
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,8 +108,25 @@ class Run:
         self.progress = progress and self.main
         self._stop_signal: str | None = None
         self._eval_compiled = None
+        self.eval_device = self._eval_device()
+        self._eval_pool = (
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="eval")
+            if self.eval_device is not None
+            else None
+        )
 
     # ---- placement ---------------------------------------------------------------------------
+
+    def _eval_device(self):
+        """The device evaluations overlap the training on (``run.eval_overlap``), or None.
+
+        One seed's planning matmuls keep ~1.3 of 2 CPU cores busy, so an evaluation on a second
+        XLA device (``host_devices`` gives a single run two) runs on what the chunk leaves idle.
+        Needs the run unsharded on the first device and a single process."""
+        if not self.cfg.run.eval_overlap or self.sharding is not None or jax.process_count() > 1:
+            return None
+        devices = jax.local_devices()
+        return devices[1] if len(devices) > 1 else None
 
     def _put(self, tree: Any) -> Any:
         """Host data with a leading seed axis -> (global) arrays sharded like the seed axis."""
@@ -259,15 +276,37 @@ class Run:
         self.log(f"{self._stop_signal} received: saving a checkpoint after this chunk")
 
     def evaluate(self, state, env_steps: int) -> np.ndarray:
+        """``run.eval_episodes`` deterministic episodes per run: returns ``[runs, episodes]``."""
+        return self.start_evaluation(state, env_steps).result()[0]
+
+    def start_evaluation(self, state, env_steps: int) -> Future:
+        """Start the evaluation at ``env_steps``; the future gives ``(returns, seconds)``.
+
+        With an evaluation device the state is copied there (the copy done before this returns,
+        since the next chunk takes the state's buffers) and the episodes run in a thread while
+        the caller goes on; otherwise they run here and the future is already done."""
         key = jax.vmap(lambda k: jax.random.fold_in(k, env_steps))(self.keys)
+        if self.eval_device is None:
+            done: Future = Future()
+            done.set_result(self._evaluate(state, key))
+            return done
+        moved = jax.block_until_ready(jax.device_put((state, key), self.eval_device))
+        return self._eval_pool.submit(self._evaluate, *moved)
+
+    def _evaluate(self, state, key) -> tuple[np.ndarray, float]:
+        t = time.perf_counter()
         if self._eval_compiled is None:  # AOT from shapes, like the chunk (see lower())
-            spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding)  # noqa: E731
+            sharding = (
+                self.sharding
+                if self.eval_device is None
+                else jax.sharding.SingleDeviceSharding(self.eval_device)
+            )
+            spec = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding)  # noqa: E731
             self._eval_compiled = self.eval_fn.lower(
                 jax.tree.map(spec, state), jax.tree.map(spec, key)
             ).compile()
         out = host(self._eval_compiled(state, key))
-        returns = np.asarray(out["returns"])  # [S, episodes]
-        return returns
+        return np.asarray(out["returns"]), time.perf_counter() - t  # returns: [S, episodes]
 
     def run(self, total_env_steps: int | None = None, max_chunks: int | None = None) -> RunResult:
         cfg = self.cfg
@@ -287,12 +326,38 @@ class Run:
             progress=self.progress,
             enabled=self.main,  # one writer in a multi-process run
         )
+        # Wall time since the run's first launch: a resumed run continues from its last row's.
+        wall0 = max((r.get("perf/wall_s", 0.0) for r in getattr(log, "rows", [])), default=0.0)
+        wall = lambda: np.full(self.num_runs, wall0 + time.perf_counter() - launch)  # noqa: E731
         handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         for s in handlers:
             try:
                 signal.signal(s, self._handle)
             except ValueError:  # not the main thread
                 pass
+        pending: tuple[int, Future] | None = None  # the evaluation in flight: (env step, future)
+
+        def collect(block: bool) -> None:
+            """Log the evaluation in flight once it is done (``block``: wait for it)."""
+            nonlocal pending
+            if pending is None or not (block or pending[1].done()):
+                return
+            (step, future), pending = pending, None
+            returns, secs = future.result()
+            result.eval_s.append(secs)
+            result.eval_returns.append((step, returns))
+            log.write(
+                step,
+                "eval",
+                {
+                    "eval/return": returns.mean(1),
+                    "eval/return_std": returns.std(1),
+                    "perf/eval_s": np.full(self.num_runs, secs),
+                    "perf/wall_s": wall(),
+                },
+            )
+            log.progress(env_steps)
+
         chunks = 0
         last_saved = env_steps if self.ckpt.latest_step() == env_steps else None
         try:
@@ -310,6 +375,7 @@ class Run:
                     result.first_update_s = time.perf_counter() - launch
                 summary = metrics_lib.summarize_chunk(stacked)
                 summary["perf/env_steps_per_s"] = np.full(self.num_runs, chunk_steps / dt)
+                summary["perf/wall_s"] = wall()
                 log.write(env_steps, "train", summary)
                 log.progress(env_steps, {"sps": f"{chunk_steps / dt:.0f}"})
                 streak = np.asarray(host(state.nonfinite_streak))
@@ -322,17 +388,11 @@ class Run:
                         f"{self.ckpt.latest_step()} in {self.dir / 'checkpoints'}. Try a lower "
                         f"wm.optim.lr or wm.optim.clip."
                     )
+                collect(block=False)
                 if env_steps % cfg.run.eval_every == 0 or env_steps >= total:
-                    t = time.perf_counter()
-                    returns = self.evaluate(state, env_steps)
-                    result.eval_s.append(time.perf_counter() - t)
-                    result.eval_returns.append((env_steps, returns))
-                    log.write(
-                        env_steps,
-                        "eval",
-                        {"eval/return": returns.mean(1), "eval/return_std": returns.std(1)},
-                    )
-                    log.progress(env_steps)
+                    collect(block=True)  # one evaluation in flight at most
+                    pending = (env_steps, self.start_evaluation(state, env_steps))
+                    collect(block=False)  # done already unless it overlaps the next chunk
                 if env_steps % cfg.run.checkpoint_every == 0 or env_steps >= total:
                     if self.save(state, it, env_steps):
                         last_saved = env_steps
@@ -340,6 +400,7 @@ class Run:
                 if max_chunks is not None and chunks >= max_chunks:
                     result.stopped = "max_chunks"
                     break
+            collect(block=True)
             if self._stop_signal is not None:
                 result.stopped = self._stop_signal
             if last_saved != env_steps:  # interrupted or stopped early: keep the work
@@ -353,10 +414,13 @@ class Run:
             self.ckpt.wait()
             log.close()
         result.env_steps = env_steps
-        self.state = state
+        # where the run stopped, for callers that go on by hand (benchmarks/bench_train.py)
+        self.state, self.iteration, self.chunk_program = state, it, compiled
         return result
 
     def close(self) -> None:
+        if self._eval_pool is not None:
+            self._eval_pool.shutdown(wait=True)
         self.ckpt.close()
 
 

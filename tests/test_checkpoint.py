@@ -67,6 +67,7 @@ def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
         [
             "planner.refine_iters: 0 -> 7",
             f"planner.value_lambda: 1.0 -> {cfg.planner.value_lambda}",
+            "run.eval_overlap: False -> True",  # where evaluations run: resumable (RESUMABLE)
         ]
         + [
             f"planner.init_cem.{k}: {v} -> {cem_now[k]}"
@@ -111,3 +112,22 @@ def test_a_checkpoint_saved_sharded_over_two_devices_restores_on_one(tmp_path):
     np.testing.assert_array_equal(np.asarray(train["w"]), np.arange(8.0).reshape(2, 4))
     assert train["w"].sharding.device_set == {jax.local_devices()[0]}
     ck.close()
+
+
+def test_where_evaluations_run_and_how_long_may_change_on_resume(tmp_path):
+    """A run started with its evaluations beside training resumes with them in line, or longer;
+    anything that changes what is computed is still refused with the key named."""
+    cfg = config.load(task="reacher_easy", presets=["debug"])
+    ck = checkpoint.Checkpointer(tmp_path / "checkpoints", keep=3)
+    assert ck.save(10, _state([1.0]), None, cfg, {"env_steps": 10})
+    ck.wait()
+    ck.check_config(
+        config.load(
+            task="reacher_easy",
+            presets=["debug"],
+            overrides=["run.eval_overlap=false", "run.steps=9000"],
+        )
+    )
+    other = config.load(task="reacher_easy", presets=["debug"], overrides=["run.eval_episodes=3"])
+    with pytest.raises(checkpoint.CheckpointError, match="run.eval_episodes: 1 -> 3"):
+        ck.check_config(other)

@@ -111,3 +111,31 @@ def test_seeds_run_on_one_cpu_device_each_and_save(tmp_path):
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert {r["seed"] for r in rows} == {0, 1, 2, 3}
     assert (run / "checkpoints" / "800").is_dir()
+
+
+def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_path):
+    """One seed gets 2 CPU devices (host_devices): it trains on the first while its evaluations
+    run on the second, overlapping the next chunk. The returns equal those of evaluating in line
+    (run.eval_overlap=false), and every evaluation is logged, the last one included."""
+    env = _env()
+    env.pop("XLA_FLAGS", None)
+    returns = {}
+    for name, extra in (("overlap", []), ("inline", ["run.eval_overlap=false"])):
+        run = tmp_path / name
+        proc = subprocess.run(
+            _train_debug(seeds=1, steps=800, run=run) + extra,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=900,
+            cwd=ROOT,
+        )
+        assert proc.returncode == 0, (
+            f"stdout:\n{proc.stdout[-2000:]}\nstderr:\n{proc.stderr[-3000:]}"
+        )
+        overlapped = "evaluations run on cpu device 1 while the next chunk trains" in proc.stdout
+        assert overlapped == (name == "overlap"), proc.stdout[-2000:]
+        rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        returns[name] = {r["step"]: r["eval/return"] for r in rows if r["kind"] == "eval"}
+    assert sorted(returns["overlap"]) == [400, 800]
+    assert returns["overlap"] == returns["inline"]

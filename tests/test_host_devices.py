@@ -23,9 +23,15 @@ def test_configure_adds_the_flag_and_keeps_other_flags():
     )
 
 
-def test_configure_leaves_one_run_and_the_users_own_count_alone():
+def test_one_run_gets_a_second_device_for_its_evaluations():
     env: dict[str, str] = {}
-    assert host_devices.configure(1, env) is None
+    assert host_devices.configure(1, env) == 2
+    assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
+
+
+def test_configure_leaves_a_prime_run_count_and_the_users_own_count_alone():
+    env: dict[str, str] = {}
+    assert host_devices.configure(17, env) is None
     assert env == {}
     user = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
     assert host_devices.configure(4, user) is None

@@ -113,6 +113,26 @@ def test_run_directory_has_config_metrics_plots_checkpoints(runs, tmp_path_facto
     assert steps[-1] == 2 * cfg.run.chunk_env_steps
 
 
+def test_metrics_carry_wall_time_that_a_resumed_run_continues(runs):
+    """Each row says how long the run had been going (``perf/wall_s``, launches and compiles
+    included), evaluations how long they took: speed comparisons read them off metrics.jsonl.
+    Run B resumed from A's first checkpoint; its clock continues from A's rows, not from 0."""
+    cfg, (res_a, _), (res_b, _) = runs
+
+    def rows(res):
+        lines = (res.run_dir / "metrics.jsonl").read_text().splitlines()
+        return [json.loads(x) for x in lines]
+
+    a, b = rows(res_a), rows(res_b)
+    walls = [r["perf/wall_s"] for r in a if r["seed"] == 0]
+    assert len(walls) == len(a) // 2 and walls == sorted(walls) and walls[0] > 0
+    assert all(r["perf/eval_s"] > 0 for r in a if r["kind"] == "eval")
+    first = cfg.run.chunk_env_steps
+    a_at_first = max(r["perf/wall_s"] for r in a if r["step"] == first)
+    b_last = max(r["perf/wall_s"] for r in b if r["step"] == 2 * first)
+    assert b_last >= a_at_first + res_b.chunk_s[0]
+
+
 def test_seeds_differ_in_init_and_data(runs):
     _, (_, state), _ = runs
     w = jax.tree.leaves(state.wm)
