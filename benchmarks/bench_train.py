@@ -12,7 +12,10 @@ measured chunks the time of a whole run is
 
     compile + init + prefill chunks + (steps - prefill) / 1000 x steady chunk + evaluations,
 
-with the evaluation time measured once per method and seed count (after its compile). Seed counts
+with the evaluation time measured once per method and seed count (after its compile). A single
+run evaluates on a second CPU device beside the next chunks (``run.eval_overlap``): the worker
+also times such a window (an evaluation started, steady chunks until it is done), and each
+evaluation but the last then costs the window less its chunks alone. Seed counts
 run as ``make train SEEDS=n`` does: one CPU device per seed (``mjx_collo.host_devices``), unless
 ``XLA_FLAGS`` sets the device count. Launch -> first update is
 measured from process start (imports included) to the end of the chunk holding the first update,
@@ -87,6 +90,8 @@ def worker(spec: dict) -> dict:
         t = time.perf_counter()
         r.evaluate(r.state, 1)
         out["eval_s"] = time.perf_counter() - t
+        if r.eval_device is not None:  # run.eval_overlap: the evaluation beside training chunks
+            out.update(overlap_window(r))
     r.close()
     from bench_planner import matmul_peak  # this script's directory is on sys.path
 
@@ -102,6 +107,29 @@ def worker(spec: dict) -> dict:
     return out
 
 
+def overlap_window(r) -> dict:
+    """Start an evaluation on its own device and keep training steady chunks until it is done,
+    as ``make train`` does after each evaluation point. Returns the window's wall time and how
+    many chunks ran in it; the evaluation's cost in a run is the window less those chunks alone."""
+    from mjx_collo import runner
+
+    state, it = r.state, r.iteration
+    t = time.perf_counter()
+    future = r.start_evaluation(state, 2)
+    chunks = 0
+    while chunks == 0 or not future.done():
+        state, stacked = r.chunk_program(state, r._it(it))
+        runner.host(stacked)
+        it += r.trainer.iterations_per_chunk
+        chunks += 1
+    _, overlapped_eval_s = future.result()
+    return {
+        "overlap_window_s": time.perf_counter() - t,
+        "overlap_chunks": chunks,
+        "overlapped_eval_s": overlapped_eval_s,
+    }
+
+
 def launch(spec: dict) -> dict:
     """Run :func:`worker` in a fresh interpreter (fresh JAX, measured from process start)."""
     cmd = [sys.executable, __file__, "--worker", json.dumps(spec)]
@@ -112,19 +140,25 @@ def launch(spec: dict) -> dict:
 
 
 def estimate(m: dict, steps: int, eval_s: float) -> float:
-    """Wall seconds of a whole ``steps`` run from the measured pieces (see module doc)."""
+    """Wall seconds of a whole ``steps`` run from the measured pieces (see module doc). With
+    ``run.eval_overlap`` every evaluation but the last runs beside the next chunks and costs
+    what its window took beyond those chunks alone; the last one has nothing to overlap."""
     prefill = sum(m["chunk_s"][: m["prefill_chunks"]])
     steady = m["chunk_s"][m["prefill_chunks"] :]
     per_chunk = sum(steady) / len(steady)
     n_steady = max(0, steps - m["prefill_chunks"] * STEADY_CHUNK) / STEADY_CHUNK
     n_eval = steps // m["eval_every"]
+    evals = n_eval * eval_s
+    if "overlap_window_s" in m and n_eval:
+        extra = max(0.0, m["overlap_window_s"] - m["overlap_chunks"] * per_chunk)
+        evals = (n_eval - 1) * min(extra, eval_s) + eval_s
     return (
         m["imports_and_build_s"]
         + m["init_s"]
         + m["compile_s"]
         + prefill
         + n_steady * per_chunk
-        + n_eval * eval_s
+        + evals
     )
 
 
@@ -217,6 +251,17 @@ def main() -> None:
             f"{m['launch_to_first_update_s']:7.0f}s {m['eval_s']:5.0f}s "
             f"{m['estimated_run_s'] / 60:7.1f}min"
         )
+    for m in rows:
+        if "overlap_window_s" in m:
+            per_chunk = sum(m["chunk_s"][m["prefill_chunks"] :]) / len(
+                m["chunk_s"][m["prefill_chunks"] :]
+            )
+            m["overlap_extra_s"] = max(0.0, m["overlap_window_s"] - m["overlap_chunks"] * per_chunk)
+            print(
+                f"{m['method']:14s} evaluation beside training (run.eval_overlap): "
+                f"{m['overlap_window_s']:.0f}s for it and {m['overlap_chunks']} chunks -> "
+                f"+{m['overlap_extra_s']:.0f}s per evaluation (alone {m['eval_s']:.0f}s)"
+            )
     print(
         f"\nmatmul work of one {args.steps}-step run (loops counted per iteration) and the least "
         f"time it needs at this machine's matmul peak ({base['matmul_gflops']:.0f} GFLOP/s)"
