@@ -31,7 +31,7 @@ def _read_run(run_dir: Path) -> tuple[list[dict], dict]:
     rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
     cfg_path = run_dir / "config.yaml"
     cfg = yaml.safe_load(cfg_path.read_text()) if cfg_path.exists() else {}
-    return rows, config_lib._flatten(cfg or {})
+    return rows, config_lib.flatten(cfg or {})
 
 
 def config_differences(configs: list[dict]) -> list[str]:

@@ -405,17 +405,17 @@ def dump_yaml(cfg: Config, path: str | Path) -> None:
 
 def diff(a: Config, b: Config) -> list[str]:
     """Human-readable list of ``key: a -> b`` differences between two configs."""
-    fa, fb = _flatten(to_dict(a)), _flatten(to_dict(b))
+    fa, fb = flatten(to_dict(a)), flatten(to_dict(b))
     keys = sorted(set(fa) | set(fb))
     return [f"{k}: {fa.get(k)!r} -> {fb.get(k)!r}" for k in keys if fa.get(k) != fb.get(k)]
 
 
-def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for k, v in tree.items():
         key = f"{prefix}{k}"
         if isinstance(v, Mapping):
-            out.update(_flatten(v, key + "."))
+            out.update(flatten(v, key + "."))
         else:
             out[key] = v
     return out
@@ -428,7 +428,7 @@ def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def float_keys(cfg: Config) -> list[str]:
     """Dotted paths of every float leaf (the keys a sweep may vary within one compile)."""
-    return sorted(k for k, v in _flatten(to_dict(cfg)).items() if isinstance(v, float))
+    return sorted(k for k, v in flatten(to_dict(cfg)).items() if isinstance(v, float))
 
 
 def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:
