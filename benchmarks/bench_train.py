@@ -139,18 +139,31 @@ def launch(spec: dict) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def steady_chunk_s(m: dict) -> float:
+    """Mean wall seconds of the measured steady chunks (after prefill)."""
+    steady = m["chunk_s"][m["prefill_chunks"] :]
+    return sum(steady) / len(steady)
+
+
+def overlap_extra_s(m: dict) -> float | None:
+    """What one evaluation beside training adds to the run: its window less the chunks alone
+    (None when the run evaluates in line)."""
+    if "overlap_window_s" not in m:
+        return None
+    return max(0.0, m["overlap_window_s"] - m["overlap_chunks"] * steady_chunk_s(m))
+
+
 def estimate(m: dict, steps: int, eval_s: float) -> float:
     """Wall seconds of a whole ``steps`` run from the measured pieces (see module doc). With
     ``run.eval_overlap`` every evaluation but the last runs beside the next chunks and costs
     what its window took beyond those chunks alone; the last one has nothing to overlap."""
     prefill = sum(m["chunk_s"][: m["prefill_chunks"]])
-    steady = m["chunk_s"][m["prefill_chunks"] :]
-    per_chunk = sum(steady) / len(steady)
+    per_chunk = steady_chunk_s(m)
     n_steady = max(0, steps - m["prefill_chunks"] * STEADY_CHUNK) / STEADY_CHUNK
     n_eval = steps // m["eval_every"]
     evals = n_eval * eval_s
-    if "overlap_window_s" in m and n_eval:
-        extra = max(0.0, m["overlap_window_s"] - m["overlap_chunks"] * per_chunk)
+    extra = overlap_extra_s(m)
+    if extra is not None and n_eval:
         evals = (n_eval - 1) * min(extra, eval_s) + eval_s
     return (
         m["imports_and_build_s"]
@@ -206,7 +219,7 @@ def main() -> None:
         print(f"... {method} x1 (cold cache)", flush=True)
         m = launch(spec(method, 1, f"{method}-1", str(tmp / f"cache-{method}"), True))
         m["method"], m["seeds"] = method, 1
-        m["env_steps_per_s"] = STEADY_CHUNK / (sum(m["chunk_s"][m["prefill_chunks"] :]))
+        m["env_steps_per_s"] = STEADY_CHUNK / steady_chunk_s(m)
         m["estimated_run_s"] = estimate(m, args.steps, m["eval_s"])
         rows.append(m)
         print(
@@ -227,7 +240,7 @@ def main() -> None:
         else:
             print(f"... {base['method']} x{n} seeds", flush=True)
             m = launch(spec(base["method"], n, f"seeds-{n}", str(tmp / f"cache-s{n}"), True))
-        steady = sum(m["chunk_s"][m["prefill_chunks"] :])
+        steady = steady_chunk_s(m)
         seeds_rows.append(
             {
                 "seeds": n,
@@ -253,10 +266,7 @@ def main() -> None:
         )
     for m in rows:
         if "overlap_window_s" in m:
-            per_chunk = sum(m["chunk_s"][m["prefill_chunks"] :]) / len(
-                m["chunk_s"][m["prefill_chunks"] :]
-            )
-            m["overlap_extra_s"] = max(0.0, m["overlap_window_s"] - m["overlap_chunks"] * per_chunk)
+            m["overlap_extra_s"] = overlap_extra_s(m)
             print(
                 f"{m['method']:14s} evaluation beside training (run.eval_overlap): "
                 f"{m['overlap_window_s']:.0f}s for it and {m['overlap_chunks']} chunks -> "
