@@ -101,6 +101,8 @@ class WorldModelConfig(Section):
     enc_layers: int
     dec_layers: int
     reward_layers: int
+    reward_head: Literal["mse", "twohot"]
+    reward_bins: int
     symlog_obs: bool
     cnn_depth: int
     kl: KLConfig
@@ -324,6 +326,8 @@ ADDED_KEYS: dict[str, Any] = {
     "planner.init_cem": {"samples": 100, "elites": 10, "iters": 4, "std": 1.0},
     "planner.value_lambda": 1.0,
     "run.eval_overlap": False,
+    "wm.reward_head": "mse",
+    "wm.reward_bins": 255,
 }
 
 
