@@ -68,6 +68,7 @@ def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
             "planner.refine_iters: 0 -> 7",
             f"planner.value_lambda: 1.0 -> {cfg.planner.value_lambda}",
             "run.eval_overlap: False -> True",  # where evaluations run: resumable (RESUMABLE)
+            "wm.reward_head: 'mse' -> 'twohot'",  # reacher's overlay since the key exists
         ]
         + [
             f"planner.init_cem.{k}: {v} -> {cem_now[k]}"

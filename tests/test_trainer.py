@@ -249,9 +249,12 @@ def test_task_overlay_sits_between_the_method_and_the_users_overrides():
     cheetah = config.load(task="cheetah_run")
     assert reacher.wm.loss_scales.reward == 10.0 and cheetah.wm.loss_scales.reward == 1.0
     assert reacher.wm.loss_scales.obs == cheetah.wm.loss_scales.obs == 1.0
+    assert (reacher.wm.reward_head, cheetah.wm.reward_head) == ("twohot", "mse")
     assert config.load(task="reacher_easy", method="latco").wm.loss_scales.reward == 10.0
-    mine = config.load(task="reacher_easy", overrides=["wm.loss_scales.reward=3"])
-    assert mine.wm.loss_scales.reward == 3.0
+    mine = config.load(
+        task="reacher_easy", overrides=["wm.loss_scales.reward=3", "wm.reward_head=mse"]
+    )
+    assert mine.wm.loss_scales.reward == 3.0 and mine.wm.reward_head == "mse"
     for name in config.available_presets("task"):
         config.load(task=name)  # every overlay names real keys with the right types
 
