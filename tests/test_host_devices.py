@@ -17,15 +17,35 @@ def test_one_device_per_run_or_the_largest_divisor_that_fits(runs, devices):
 
 def test_configure_adds_the_flag_and_keeps_other_flags():
     env = {"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
-    assert host_devices.configure(3, env) == 3
+    assert host_devices.configure(3, env, cores=8) == 3
     assert env["XLA_FLAGS"] == (
         "--xla_cpu_enable_fast_math=false --xla_force_host_platform_device_count=3"
     )
 
 
-def test_one_run_gets_a_second_device_for_its_evaluations():
+def test_seeds_filling_the_cores_run_single_threaded_devices():
     env: dict[str, str] = {}
-    assert host_devices.configure(1, env) == 2
+    assert host_devices.configure(4, env, cores=2) == 4
+    assert env["XLA_FLAGS"] == (
+        "--xla_force_host_platform_device_count=4 --xla_cpu_multi_thread_eigen=false"
+    )
+    assert host_devices.configure(2, env := {}, cores=2) == 2
+    assert env["XLA_FLAGS"].endswith("--xla_cpu_multi_thread_eigen=false")
+    # 3 single-threaded devices on 2 cores leave one core shared by two: they keep the threads
+    assert host_devices.configure(3, env := {}, cores=2) == 3
+    assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=3"
+    # the user's own choice wins
+    env = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=true"}
+    assert host_devices.configure(4, env, cores=2) == 4
+    assert env["XLA_FLAGS"] == (
+        "--xla_cpu_multi_thread_eigen=true --xla_force_host_platform_device_count=4"
+    )
+
+
+def test_one_run_gets_a_second_device_for_its_evaluations():
+    # and keeps Eigen's threads: its training device needs both cores between evaluations
+    env: dict[str, str] = {}
+    assert host_devices.configure(1, env, cores=2) == 2
     assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=2"
 
 
