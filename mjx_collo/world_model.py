@@ -111,9 +111,8 @@ def _rssm_nets(cfg: WorldModelConfig) -> dict[str, Any]:
 
 
 def _reward_net(cfg: WorldModelConfig) -> Any:
-    if cfg.reward_head == "twohot":
-        return nets.MLP(cfg.reward_layers, cfg.units, out=cfg.reward_bins, act=cfg.act)
-    return nets.MLP(cfg.reward_layers, cfg.units, out=1, act=cfg.act)
+    out = cfg.reward_bins if cfg.reward_head == "twohot" else 1
+    return nets.MLP(cfg.reward_layers, cfg.units, out=out, act=cfg.act)
 
 
 def _io_nets(cfg: WorldModelConfig, obs_shape: tuple[int, ...]) -> dict[str, Any]:
@@ -247,7 +246,15 @@ def reward(cfg: WorldModelConfig, params: Params, feat: jax.Array) -> jax.Array:
     ``reward_head: twohot``: the head's logits over :func:`reward_bins` give
     ``symexp(sum_k softmax(logits)_k * bin_k)`` (DreamerV3's mean), differentiable in ``feat``.
     """
-    out = _apply(_reward_net(cfg), params["reward"], feat)
+    return _reward_mean(cfg, _reward_out(cfg, params, feat))
+
+
+def _reward_out(cfg: WorldModelConfig, params: Params, feat: jax.Array) -> jax.Array:
+    """The reward head's raw output: ``[..., 1]`` (mse) or logits ``[..., reward_bins]``."""
+    return _apply(_reward_net(cfg), params["reward"], feat)
+
+
+def _reward_mean(cfg: WorldModelConfig, out: jax.Array) -> jax.Array:
     if cfg.reward_head == "twohot":
         return symexp(jnp.sum(jax.nn.softmax(out, -1) * reward_bins(cfg), -1))
     return out[..., 0]
@@ -271,11 +278,14 @@ def twohot(y: jax.Array, bins: jax.Array) -> jax.Array:
 def reward_nll(cfg: WorldModelConfig, params: Params, feat: jax.Array, rew: jax.Array) -> jax.Array:
     """Per-step reward loss ``[...]``: ``0.5 (r̂ - r)^2`` (mse head), or the cross-entropy of the
     head's logits against ``twohot(symlog(r))`` (twohot head)."""
+    return _reward_nll(cfg, _reward_out(cfg, params, feat), rew)
+
+
+def _reward_nll(cfg: WorldModelConfig, out: jax.Array, rew: jax.Array) -> jax.Array:
     if cfg.reward_head == "twohot":
-        logits = _apply(_reward_net(cfg), params["reward"], feat)
         target = twohot(symlog(rew), reward_bins(cfg))
-        return -jnp.sum(target * jax.nn.log_softmax(logits, -1), -1)
-    return 0.5 * jnp.square(reward(cfg, params, feat) - rew)
+        return -jnp.sum(target * jax.nn.log_softmax(out, -1), -1)
+    return 0.5 * jnp.square(_reward_mean(cfg, out) - rew)
 
 
 # --------------------------------------------------------------------------------------------
@@ -770,10 +780,11 @@ def _loss_io(
     target = preprocess_obs(cfg, params, batch["obs"])
     sq_obs = jnp.square(decode(cfg, params, feat) - target)
     rew = batch["reward"].astype(jnp.float32)
-    sq_rew = jnp.square(reward(cfg, params, feat) - rew)
+    rew_out = _reward_out(cfg, params, feat)  # one pass of the head: the loss and the error metric
+    sq_rew = jnp.square(_reward_mean(cfg, rew_out) - rew)
     obs_axes = tuple(range(2, sq_obs.ndim))
     kl, kl_metrics = kl_loss(cfg, post.stats, prior.stats)
-    rew_loss = 0.5 * sq_rew if cfg.reward_head == "mse" else reward_nll(cfg, params, feat, rew)
+    rew_loss = 0.5 * sq_rew if cfg.reward_head == "mse" else _reward_nll(cfg, rew_out, rew)
     losses = {"obs": 0.5 * jnp.mean(jnp.sum(sq_obs, obs_axes)), "reward": jnp.mean(rew_loss)}
     losses["kl"] = kl
     scales = loss_scales(cfg)
