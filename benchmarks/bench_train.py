@@ -16,7 +16,7 @@ with the evaluation time measured once per method and seed count (after its comp
 run evaluates on a second CPU device beside the next chunks (``run.eval_overlap``): the worker
 also times such a window (an evaluation started, steady chunks until it is done), and each
 evaluation but the last then costs the window less its chunks alone. Seed counts
-run as ``make train SEEDS=n`` does: one CPU device per seed (``mjx_collo.host_devices``), unless
+run as ``make train SEEDS=n`` does: on the CPU devices ``mjx_collo.host_devices`` gives n seeds, unless
 ``XLA_FLAGS`` sets the device count. Launch -> first update is
 measured from process start (imports included) to the end of the chunk holding the first update,
 cold (empty cache) and warm (a second launch with the cache the first one filled).

@@ -1,11 +1,11 @@
-"""One XLA CPU device per seed, so that the seeds of a run execute in parallel on a multi-core host.
+"""XLA CPU devices for the seeds of a run, so that they execute in parallel on a multi-core host.
 
 XLA's CPU backend shows the whole host as a single device. Vmapped seeds then run as one stream of
 batched matmuls (one weight set per seed), and one seed's small planning matmuls keep only about
 1.3 of 2 cores busy (one default planning call: 233 ms on 2 cores, 303 ms pinned to one).
 ``--xla_force_host_platform_device_count=N`` splits the host into N devices. The trainer then
-shards the seed axis over them (``trainer.batched``: ``shard_map``, one unbatched seed per
-device), and the seeds' programs run side by side on the cores.
+shards the seed axis over them (``trainer.batched``: ``shard_map``, each device its own block of
+seeds, one seed unbatched), and the seeds' programs run side by side on the cores.
 
 Must run before JAX initialises its backends. Only the CPU platform reads the flag: on a GPU or
 TPU host the accelerators stay the devices. An ``XLA_FLAGS`` that already sets the count wins.
@@ -13,6 +13,14 @@ Imports nothing from JAX.
 
 A single run gets two devices: it trains on the first, and its evaluations run on the second while
 the next chunk trains (``run.eval_overlap``; ``runner.Run``), filling the cores one seed leaves idle.
+
+When the runs outnumber the cores and split evenly over them, they get one device per core, each
+vmapping ``runs / cores`` of them, instead of one device per run. On the 2-core VM, 4 seeds
+measured back to back: 2 devices, steady chunk 82.0 s and 217 s per evaluation
+(``bench_results/train_seeds4_2dev.json``); 4 devices, 82.3 s and 241 s
+(``bench_results/train_seeds4_4dev_backtoback.json``, only its 4-seed row). The chunks tie; the
+evaluations, 20 episodes of small planning matmuls, gain from 2 seeds sharing each matmul instead
+of 4 single-threaded programs time-slicing 2 cores.
 
 When the seeds' devices are a multiple of the host's cores, each device also runs its ops on one
 thread (``--xla_cpu_multi_thread_eigen=false``): the devices are then the parallelism, and Eigen's
@@ -55,8 +63,10 @@ def configure(
 ) -> int | None:
     """Add the device-count flag for ``num_runs`` to ``XLA_FLAGS`` unless it is set already.
 
-    One run gets 2 devices (training and its overlapped evaluations). Several runs on a multiple of
-    ``cores`` devices (default: :func:`host_cores`) also get single-threaded devices
+    One run gets 2 devices (training and its overlapped evaluations). More runs than ``cores``
+    (default: :func:`host_cores`) that split evenly over them get one device per core; other counts
+    get :func:`device_count_for`. Several runs on a multiple of ``cores`` devices also get
+    single-threaded devices
     (``--xla_cpu_multi_thread_eigen=false``) unless ``XLA_FLAGS`` sets that. Returns the device count it
     set, or None when it left ``XLA_FLAGS`` alone (a count of 1, the user's own count, or JAX
     already imported in this process: the flag would have no effect here and would only leak
@@ -66,11 +76,16 @@ def configure(
         return None
     env = os.environ if environ is None else environ
     flags = env.get("XLA_FLAGS", "")
-    n = 2 if num_runs == 1 else device_count_for(num_runs)
+    cores = host_cores() if cores is None else cores
+    if num_runs == 1:
+        n = 2
+    elif cores > 1 and num_runs > cores and num_runs % cores == 0:
+        n = cores  # one device per core, each vmapping num_runs / cores runs
+    else:
+        n = device_count_for(num_runs)
     if n == 1 or FLAG in flags:
         return None
     flags = f"{flags} --{FLAG}={n}".strip()
-    cores = host_cores() if cores is None else cores
     if num_runs > 1 and n % cores == 0 and EIGEN_FLAG not in flags:
         flags += f" --{EIGEN_FLAG}=false"
     env["XLA_FLAGS"] = flags

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from mjx_collo import host_devices
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -90,16 +92,19 @@ def test_two_process_distributed_run_trains(tmp_path):
     assert (run / "checkpoints" / "400").is_dir()
 
 
-def test_seeds_run_on_one_cpu_device_each_and_save(tmp_path):
-    """``train.py --seeds 4`` splits the 2-core host into 4 CPU devices (host_devices), runs one
-    seed per device and writes its checkpoint. More devices than cores: the pre-save NaN check
-    once reduced over the sharded state on the devices, and XLA aborted that all-reduce when a
-    participant did not arrive within 40 s; the check now runs on the host."""
-    run = tmp_path / "four"
+# 3 seeds (more devices than cores) in make test-all only: make test stays under its 15 minutes
+@pytest.mark.parametrize("seeds", [pytest.param(3, marks=pytest.mark.slow), 4])
+def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
+    """``train.py --seeds n`` splits the host into CPU devices (host_devices): on 2 cores 3 seeds
+    get one device each, 4 seeds one device per core with 2 vmapped seeds each. Each run writes its
+    checkpoint. More devices than cores (3 on 2): the pre-save NaN check once reduced over the
+    sharded state on the devices, and XLA aborted that all-reduce when a participant did not
+    arrive within 40 s; the check now runs on the host."""
+    run = tmp_path / f"seeds{seeds}"
     env = _env()
     env.pop("XLA_FLAGS", None)
     proc = subprocess.run(
-        _train_debug(seeds=4, steps=800, run=run),
+        _train_debug(seeds=seeds, steps=800, run=run),
         env=env,
         capture_output=True,
         text=True,
@@ -107,9 +112,11 @@ def test_seeds_run_on_one_cpu_device_each_and_save(tmp_path):
         cwd=ROOT,
     )
     assert proc.returncode == 0, f"stdout:\n{proc.stdout[-2000:]}\nstderr:\n{proc.stderr[-3000:]}"
-    assert "seed axis sharded over 4 cpu devices (1 run(s) each)" in proc.stdout
+    devices = host_devices.configure(seeds, {})
+    split = f"{devices} cpu devices ({seeds // devices} run(s) each)"
+    assert f"seed axis sharded over {split}" in proc.stdout
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-    assert {r["seed"] for r in rows} == {0, 1, 2, 3}
+    assert {r["seed"] for r in rows} == set(range(seeds))
     assert (run / "checkpoints" / "800").is_dir()
 
 

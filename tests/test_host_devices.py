@@ -23,12 +23,21 @@ def test_configure_adds_the_flag_and_keeps_other_flags():
     )
 
 
-def test_seeds_filling_the_cores_run_single_threaded_devices():
+def test_more_runs_than_cores_get_one_device_per_core_when_they_split_evenly():
     env: dict[str, str] = {}
-    assert host_devices.configure(4, env, cores=2) == 4
+    assert host_devices.configure(4, env, cores=2) == 2  # 2 vmapped runs per device
     assert env["XLA_FLAGS"] == (
-        "--xla_force_host_platform_device_count=4 --xla_cpu_multi_thread_eigen=false"
+        "--xla_force_host_platform_device_count=2 --xla_cpu_multi_thread_eigen=false"
     )
+    assert host_devices.configure(16, {}, cores=8) == 8
+    # runs that do not split evenly over the cores keep one device per run (or a divisor)
+    assert host_devices.configure(6, env := {}, cores=4) == 6
+    assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=6"
+    # no more runs than cores: one device each
+    assert host_devices.configure(4, {}, cores=8) == 4
+
+
+def test_seeds_filling_the_cores_run_single_threaded_devices():
     assert host_devices.configure(2, env := {}, cores=2) == 2
     assert env["XLA_FLAGS"].endswith("--xla_cpu_multi_thread_eigen=false")
     # 3 single-threaded devices on 2 cores leave one core shared by two: they keep the threads
@@ -36,9 +45,9 @@ def test_seeds_filling_the_cores_run_single_threaded_devices():
     assert env["XLA_FLAGS"] == "--xla_force_host_platform_device_count=3"
     # the user's own choice wins
     env = {"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=true"}
-    assert host_devices.configure(4, env, cores=2) == 4
+    assert host_devices.configure(4, env, cores=2) == 2
     assert env["XLA_FLAGS"] == (
-        "--xla_cpu_multi_thread_eigen=true --xla_force_host_platform_device_count=4"
+        "--xla_cpu_multi_thread_eigen=true --xla_force_host_platform_device_count=2"
     )
 
 
