@@ -9,13 +9,24 @@ Imports mujoco, mjx, jax and brax only; never mjx_collo.
 
 from __future__ import annotations
 
+import contextlib
+import io
 from collections.abc import Callable
 
-from brax.envs.base import Env
+# mujoco-mjx 3.x prints "Failed to import warp / mujoco_warp" to stdout on import when the optional
+# Warp backend (GPU only) is not installed. We never use it; keep the notice off every command's output
+# and pass any other line through.
+with contextlib.redirect_stdout(io.StringIO()) as _import_out:
+    from mujoco import mjx  # noqa: F401
+for _line in _import_out.getvalue().splitlines():
+    if not _line.startswith(("Failed to import warp", "Failed to import mujoco_warp")):
+        print(_line)
 
-from envs import cheetah, quadruped, reacher, walker
-from envs.base import PHYSICS, MjxTask
-from envs.wrappers import AutoResetWrapper, EpisodeWrapper, NormalizeActions, VmapWrapper
+from brax.envs.base import Env  # noqa: E402
+
+from envs import cheetah, quadruped, reacher, walker  # noqa: E402
+from envs.base import PHYSICS, MjxTask  # noqa: E402
+from envs.wrappers import AutoResetWrapper, EpisodeWrapper, NormalizeActions, VmapWrapper  # noqa: E402
 
 _TASKS: dict[str, Callable[..., MjxTask]] = {
     "cheetah_run": cheetah.CheetahRun,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import functools
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -14,6 +16,15 @@ from envs.rewards import tolerance
 
 # Semantics tests of tiny programs: XLA's backend optimisation only costs compile time here.
 FAST = {"compiler_options": {"xla_backend_optimization_level": 0}}
+
+
+def test_importing_the_suite_prints_nothing():
+    # mujoco-mjx prints a notice about its optional GPU-only Warp backend on import; users of the CPU
+    # trainer should not see it before every command's output.
+    out = subprocess.run(
+        [sys.executable, "-c", "import envs"], capture_output=True, text=True, check=True
+    ).stdout
+    assert out == ""
 
 
 def test_registry_lists_the_paper_tasks_and_aliases():
