@@ -169,4 +169,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    from mjx_collo import xla_log_filter
+
+    xla_log_filter.install()
     sys.exit(main())

@@ -337,4 +337,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    from mjx_collo import xla_log_filter
+
+    xla_log_filter.install()  # the workers inherit the filtered stderr
     main()
