@@ -13,6 +13,7 @@ leaves the previous checkpoint intact; non-finite states are refused before anyt
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -100,16 +101,28 @@ def _step_dir(path: Path) -> tuple[Path, int | None]:
     return path, None
 
 
+def _read_only_notice(record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith("Given directory is read only")
+
+
 class Checkpointer:
     def __init__(self, directory: str | Path, keep: int = 3, read_only: bool = False):
         self.directory, self.pinned_step = _step_dir(Path(directory).resolve())
         options = ocp.CheckpointManagerOptions(
-            max_to_keep=keep,
+            max_to_keep=None if read_only else keep,  # what orbax sets (with a warning) when read-only
+            save_interval_steps=0 if read_only else 1,
             create=not read_only,
             read_only=read_only,
             enable_async_checkpointing=True,
         )
-        self.manager = ocp.CheckpointManager(self.directory, options=options)
+        # Read-only (make eval, possibly beside a training run still writing here) is what we asked
+        # for; orbax announces it on every open as a warning.
+        absl_log = logging.getLogger("absl")
+        absl_log.addFilter(_read_only_notice)
+        try:
+            self.manager = ocp.CheckpointManager(self.directory, options=options)
+        finally:
+            absl_log.removeFilter(_read_only_notice)
 
     # ---- saving ------------------------------------------------------------------------------
 

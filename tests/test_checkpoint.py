@@ -43,6 +43,23 @@ def test_a_state_with_nan_is_not_saved_and_the_last_good_one_stays(tmp_path):
     ck.close()
 
 
+def test_opening_read_only_restores_without_warnings(tmp_path, caplog):
+    """`make eval` opens the run's checkpoints read-only (a training run may still be writing
+    there); orbax used to print three warnings about it on every open."""
+    cfg = config.load(task="reacher_easy", presets=["debug"])
+    ck = checkpoint.Checkpointer(tmp_path / "checkpoints", keep=3)
+    assert ck.save(10, _state([1.0, 2.0]), None, cfg, {"env_steps": 10})
+    ck.wait()
+    ck.close()
+    with caplog.at_level("WARNING"):
+        ro = checkpoint.Checkpointer(tmp_path, read_only=True)
+        train, _, meta = ro.restore(jax.eval_shape(lambda: _state([0.0, 0.0])))
+    assert meta["env_steps"] == 10 and ro.latest_step() == 10
+    np.testing.assert_array_equal(np.asarray(train["w"]), [1.0, 2.0])
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == []
+    ro.close()
+
+
 def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
     """Runs saved before ``planner.refine_iters`` / ``planner.value_lambda`` existed must evaluate
     and resume: their stored config gets the value that reproduces how they planned (no
