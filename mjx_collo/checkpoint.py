@@ -109,9 +109,8 @@ class Checkpointer:
     def __init__(self, directory: str | Path, keep: int = 3, read_only: bool = False):
         self.directory, self.pinned_step = _step_dir(Path(directory).resolve())
         options = ocp.CheckpointManagerOptions(
-            max_to_keep=None
-            if read_only
-            else keep,  # what orbax sets (with a warning) when read-only
+            # read-only: the values orbax would otherwise force, each with a warning
+            max_to_keep=None if read_only else keep,
             save_interval_steps=0 if read_only else 1,
             create=not read_only,
             read_only=read_only,
