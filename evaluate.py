@@ -30,60 +30,15 @@ def parse(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-EVAL_SECTIONS = ("planner",)  # how a trained agent acts; every other key shapes what was trained
-
-
-def eval_config(cfg, overrides):
-    """The checkpoint's config with evaluation-time ``planner.*`` overrides applied."""
-    from mjx_collo import config
-
-    if not overrides:
-        return cfg
-    new = config.build(config.apply_overrides(config.to_dict(cfg), overrides, EVAL_SECTIONS))
-    if (new.planner.kind == "dreamer") != (cfg.planner.kind == "dreamer"):
-        raise config.ConfigError(
-            f"cannot evaluate a planner.kind={cfg.planner.kind} checkpoint with "
-            f"planner.kind={new.planner.kind}: only dreamer checkpoints hold an actor, and the "
-            "actor is their policy; switch between the planners (latco, collodreamer, cem, mppi, "
-            "mppi_value) instead"
-        )
-    return new
-
-
-def restore_state(ckpt, step: int, cfg, env, replay: bool = False):
-    """The seed-stacked train state of checkpoint ``step`` and the seed keys; the replay only with
-    ``replay=True`` (the checkpoint must hold one), else ``state.replay`` is None.
-
-    cfg: the checkpoint's own config: the state's shapes follow it (the acting caches depend on
-    planner.mpc_steps), whatever planner settings the evaluation then uses.
-    """
-    import jax
-    import numpy as np
-
-    from mjx_collo import trainer
-
-    meta = ckpt.meta(step)
-    n = meta["num_runs"]
-    keys = trainer.seed_keys(cfg, n)
-    # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
-    hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
-    init = trainer.make_train(cfg, env).init
-    abstract = jax.eval_shape(jax.vmap(init), keys, hyper)
-    state, rep, _ = ckpt.restore(
-        abstract.replace(replay=None), abstract.replay if replay else None, step
-    )
-    return state.replace(replay=rep), keys
-
-
 def main(argv=None) -> int:
     args = parse(argv)
     import jax
     import numpy as np
 
-    from mjx_collo import checkpoint, config, runner, trainer
-    from train import setup_jax
+    import envs
+    from mjx_collo import checkpoint, config, session, trainer
 
-    setup_jax()
+    session.setup_jax()
     try:
         ckpt = checkpoint.Checkpointer(args.ckpt, read_only=True)
         step = ckpt.latest_step()
@@ -91,7 +46,7 @@ def main(argv=None) -> int:
             raise checkpoint.CheckpointError(f"no checkpoint found under {args.ckpt}")
         meta = ckpt.meta(step)
         cfg = ckpt.config(step)
-        cfg_run = eval_config(cfg, args.overrides)
+        cfg_run = session.eval_config(cfg, args.overrides)
     except (checkpoint.CheckpointError, FileNotFoundError, config.ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -101,11 +56,11 @@ def main(argv=None) -> int:
     cfg_eval = cfg_run.model_copy(
         update={"run": cfg.run.model_copy(update={"eval_episodes": args.episodes})}
     )
-    env = runner.make_env(cfg)
+    env = envs.from_config(cfg.env)
     tr = trainer.make_train(cfg_eval, env)
     labels = meta["labels"]
     n = meta["num_runs"]
-    state, keys = restore_state(ckpt, step, cfg, env)
+    state, keys = session.restore_state(ckpt, step, cfg, env)
     t = time.perf_counter()
     eval_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, step), 7))(keys)
     evaluate_fn = trainer.batched(tr)[2]  # one seed runs unbatched (trainer.over_seeds)
@@ -137,6 +92,7 @@ def main(argv=None) -> int:
         "env_steps": step,
         "episodes": args.episodes,
         "overrides": list(args.overrides),
+        "planner": config.to_dict(cfg_run)["planner"],  # the settings the episodes acted with
         "runs": rows,
         "mean_over_runs": float(means.mean()),
         "std_over_runs": float(means.std()),

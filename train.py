@@ -1,16 +1,16 @@
 """Train an agent: ``make train ENV=cheetah [METHOD=] [SEEDS=] [STEPS=] [RUN=] [ARGS="a.b=c"]``.
 
-CLI glue only: parse -> build -> compile -> loop -> write (mjx_collo/runner.py does the work).
+CLI glue only: parse -> build the env -> hand it to mjx_collo.runner, which compiles, loops and
+writes. Imports only the library (mjx_collo, envs).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-from mjx_collo import host_devices
+from mjx_collo import host_devices, session
 
 
 def parse(argv: list[str] | None = None) -> argparse.Namespace:
@@ -43,19 +43,6 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def setup_jax() -> None:
-    """Persistent compilation cache: re-running, resuming or evaluating the same config skips
-    most of the XLA compile time."""
-    import jax
-
-    if jax.config.jax_compilation_cache_dir:  # already configured (e.g. by the test suite)
-        return
-    cache = Path(os.environ.get("MJX_COLLO_CACHE", Path.home() / ".cache" / "mjx_collo" / "xla"))
-    cache.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(cache))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
-
-
 def setup_distributed(args: argparse.Namespace) -> None:
     """Join a multi-process run (``--distributed``) before anything touches a JAX backend.
 
@@ -79,33 +66,10 @@ def setup_distributed(args: argparse.Namespace) -> None:
     )
 
 
-def default_run_dir(
-    task: str, method: str, seeds: int, presets: list[str], sweep: str | None, overrides: list[str]
-) -> Path:
-    """Deterministic per command, so re-running the same command resumes it."""
-    import hashlib
-
-    parts = [task, method, f"s{seeds}"] + presets
-    extra = " ".join(sorted(overrides)) + (f" sweep={sweep}" if sweep else "")
-    if extra:
-        parts.append(hashlib.sha1(extra.encode()).hexdigest()[:8])
-    return Path("runs") / "-".join(parts)
-
-
-def num_runs(args: argparse.Namespace) -> int:
-    """Seeds x swept values, counted from the raw ``--sweep`` text (validated later, by
-    ``config.parse_sweep``; this count only sizes the CPU devices before JAX starts)."""
-    n = max(args.seeds, 1)
-    for item in (args.sweep or "").replace(";", " ").split():
-        values = [v for v in item.partition("=")[2].split(",") if v.strip()]
-        n *= max(len(values), 1)
-    return n
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
     if not args.distributed:  # a distributed run's devices are its processes' own
-        host_devices.configure(num_runs(args))
+        host_devices.configure(session.count_runs(args.seeds, args.sweep))
     try:
         setup_distributed(args)
     except ValueError as e:
@@ -128,11 +92,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
 
-    setup_jax()
+    session.setup_jax()
     run_dir = (
         Path(args.run)
         if args.run
-        else default_run_dir(task, args.method, args.seeds, args.preset, args.sweep, args.overrides)
+        else session.default_run_dir(
+            task, args.method, args.seeds, args.preset, args.sweep, args.overrides
+        )
     )
     print(
         f"mjx_collo: {args.method} on {task}, {args.seeds} seed(s)"
@@ -146,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             f"jax.distributed: process {jax.process_index()}/{jax.process_count()}, "
             f"{jax.device_count()} devices ({jax.local_device_count()} on this process)"
         )
-    env = runner.make_env(cfg)
+    env = envs.from_config(cfg.env)
     try:
         r = runner.Run(
             cfg, env, run_dir, num_seeds=args.seeds, sweep=sweep, progress=not args.no_progress

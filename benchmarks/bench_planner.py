@@ -1,6 +1,6 @@
 """Planner benchmark: cost per planning call and return per CPU second (``make bench-planner``).
 
-Model: the real world model's plan-space adapter (``world_model.planning_fns``) with random weights
+Model: the real world model's plan-space adapter (``world_model.latent_model``, as the trainer builds it) with random weights
 at the default sizes (categorical 32x32 RSSM, deter 200, reward MLP 2x400; ``reduced`` space unless
 noted), a random-weight value net (3x400) for the bootstrapping planners, action dim 6 (cheetah).
 Contexts are model states after 10 random-action steps from the zero state.
@@ -44,15 +44,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mjx_collo import agent as agent_lib
 from mjx_collo import config
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm
 from mjx_collo.config import Config
-from mjx_collo.flops import matmul_flops
+from mjx_collo.flops import matmul_flops, matmul_peak
 from mjx_collo.planner import (
     COLLOCATION,
     LatentModel,
-    attach_value,
     cache_len,
     make_planner,
     mpc_init,
@@ -75,21 +75,9 @@ ROOT = Path(__file__).resolve().parent.parent
 def build(cfg: Config, key: jax.Array) -> tuple[LatentModel, Any]:
     """(protocol model, params) for ``cfg``; params = (wm, target value) when bootstrapping."""
     k_wm, k_v = jax.random.split(key)
-    fns = wm.planning_fns(cfg.wm, cfg.planner.space)
     wparams = wm.init(cfg.wm, k_wm, (OBS_DIM,), ACTION_DIM)
-    base = LatentModel(
-        start=fns.start,
-        step=fns.step,
-        reward=fns.reward,
-        feat=fns.feat,
-        ctx_feat=fns.ctx_feat,
-        step_reward=fns.step_reward,
-        step_feat=fns.step_feat,  # as the trainer's model (agent.make_agent): batched heads
-        feat_reward=fns.feat_reward,
-    )
     vstate = value_lib.init_value(cfg.value, k_v, wm.feat_size(cfg.wm))
-    value_fn = lambda vp, f: value_lib.apply_value(cfg.value, vp, f)
-    model = attach_value(base, fns.feat, value_fn, fns.step_reward_feat)
+    model = agent_lib.make_agent(cfg, ACTION_DIM).model  # the trainer's model
     return model, (wparams, vstate.target)
 
 
@@ -111,19 +99,6 @@ def load(method: str, overrides: list[str]) -> Config:
 # ------------------------------------------------------------------------------------------------
 # Timing helpers
 # ------------------------------------------------------------------------------------------------
-
-
-def matmul_peak() -> float:
-    """GFLOP/s of a plain 1024^3 f32 matmul right now (the machine's achievable ceiling)."""
-    a = jnp.ones((1024, 1024), jnp.float32)
-    f = jax.jit(lambda x: x @ x)
-    jax.block_until_ready(f(a))
-    best = float("inf")
-    for _ in range(5):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(a))
-        best = min(best, time.perf_counter() - t0)
-    return 2 * 1024**3 / best / 1e9
 
 
 def compile_and_time(fn: Callable, args: tuple, reps: int) -> tuple[Any, float, float, Any]:

@@ -61,7 +61,7 @@ def worker(spec: dict) -> dict:
         *spec.get("overrides", []),
     ]
     cfg = config.load(task=task, method=spec["method"], overrides=overrides)
-    env = runner.make_env(cfg)
+    env = envs.from_config(cfg.env)
     logs: list[str] = []
     r = runner.Run(cfg, env, spec["run"], num_seeds=spec["seeds"], progress=False, log=logs.append)
     prefill_chunks = -(-cfg.run.prefill // STEADY_CHUNK)
@@ -93,7 +93,7 @@ def worker(spec: dict) -> dict:
         if r.eval_device is not None:  # run.eval_overlap: the evaluation beside training chunks
             out.update(overlap_window(r))
     r.close()
-    from bench_planner import matmul_peak  # this script's directory is on sys.path
+    from mjx_collo.flops import matmul_peak
 
     out["matmul_gflops"] = matmul_peak()  # the machine's speed, to compare timings across VMs
     b = out["matmul_budget"]

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
         presets=args.preset,
         overrides=args.overrides,
     )
-    run = runner.Run(cfg, runner.make_env(cfg), args.run_dir, num_seeds=1, progress=False)
+    run = runner.Run(cfg, envs.from_config(cfg.env), args.run_dir, num_seeds=1, progress=False)
     state, _ = run.start()
     arrays = {}
     for path, leaf in jax.tree_util.tree_flatten_with_path(state.wm)[0]:

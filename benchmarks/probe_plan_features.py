@@ -4,7 +4,7 @@
 
 The categorical RSSM trains its reward head on features ``[one-hot posterior sample, h]``. The
 reduced-space collocation planner feeds it ``[prior probabilities m(h), h]`` instead (soft
-probabilities: samples or argmax have no gradient; ALGORITHM.md pitfall 5). If the head did not
+probabilities: samples or argmax have no gradient; docs/ALGORITHM.md pitfall 5). If the head did not
 generalise to soft inputs, plans would optimise a reward the model never learned. This filters the
 fixture's replay rows with its world model and compares the reward head's error against the logged
 rewards under the three features of the same states. Prints a table; writes nothing.
@@ -21,18 +21,18 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
+FIXTURE = ROOT / "benchmarks" / "fixtures" / "cheetah_cem_20k.npz"
 
-from bench_plan_quality import FIXTURE, load_cfg, load_params, posteriors  # noqa: E402
-
+from mjx_collo import config  # noqa: E402
 from mjx_collo import world_model as wm  # noqa: E402
+from mjx_collo.plan_quality import load_params, posteriors  # noqa: E402
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--fixture", type=Path, default=FIXTURE)
     args = p.parse_args(argv)
-    cfg = load_cfg("cem", [])
+    cfg = config.load(task="cheetah_run", method="cem")
     params, rep = load_params(cfg, args.fixture)
 
     posts = posteriors(cfg, params, rep)

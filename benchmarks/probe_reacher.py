@@ -39,33 +39,32 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    import evaluate
+    import envs
     from mjx_collo import agent as agent_lib
-    from mjx_collo import checkpoint, runner
+    from mjx_collo import checkpoint, session
     from mjx_collo import value as value_lib
     from mjx_collo import world_model as wm_lib
-    from train import setup_jax
 
-    setup_jax()
+    session.setup_jax()
     ck = checkpoint.Checkpointer(args.ckpt, read_only=True)
     step = ck.latest_step()
     cfg0 = ck.config(step)
     if not cfg0.env.task.startswith("reacher"):
         print(f"error: {cfg0.env.task} is not a reacher task", file=sys.stderr)
         return 2
-    cfg = evaluate.eval_config(cfg0, args.overrides)
-    env = runner.make_env(cfg)
-    state, _ = evaluate.restore_state(ck, step, cfg0, env)
+    cfg = session.eval_config(cfg0, args.overrides)
+    env = envs.from_config(cfg.env)
+    state, _ = session.restore_state(ck, step, cfg0, env)
     s = jax.tree.map(lambda x: x[args.seed], state)
     agent = agent_lib.make_agent(cfg, int(env.action_size))
     n, length = args.episodes, cfg.env.episode_env_steps // cfg.env.action_repeat
-    reduced = wm_lib.planning_fns(cfg.wm, "reduced")
+    reduced = wm_lib.latent_model(cfg.wm, "reduced")
 
     @jax.jit
     def episodes(s, key):
         k_env, k_carry, key = jax.random.split(key, 3)
         es = jax.vmap(env.reset)(jax.random.split(k_env, n))
-        params = agent_lib.plan_params(s.wm, s.value.target if s.value is not None else None)
+        params = wm_lib.plan_params(s.wm, s.value.target if s.value is not None else None)
         carry = agent_lib.init_carry(agent, params, n, k_carry)
 
         def step_fn(c, t):
@@ -87,7 +86,7 @@ def main(argv=None) -> int:
             )
             r_pred = wm_lib.reward(cfg.wm, s.wm, feat)  # reward of arriving in this state
             # ... and as the planner sees this state (reduced space: [prior probabilities of h, h])
-            r_plan = reduced.reward(s.wm, carry.post.deter)
+            r_plan = reduced.reward(wm_lib.plan_params(s.wm), carry.post.deter)
             a, carry = agent_lib.act(agent, None, carry, k_act, training=False)
             es = jax.vmap(env.step)(es, a)
             dist = jnp.linalg.norm(

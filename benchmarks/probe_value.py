@@ -46,16 +46,15 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    import evaluate
+    import envs
     from mjx_collo import agent as agent_lib
-    from mjx_collo import checkpoint, runner
+    from mjx_collo import checkpoint, session
     from mjx_collo import replay as replay_lib
     from mjx_collo import value as value_lib
     from mjx_collo import world_model as wm
     from mjx_collo.planners.protocol import rollout
-    from train import setup_jax
 
-    setup_jax()
+    session.setup_jax()
     ck = checkpoint.Checkpointer(args.ckpt, read_only=True)
     step = ck.latest_step()
     cfg0 = ck.config(step)
@@ -66,9 +65,9 @@ def main(argv=None) -> int:
     if not meta.get("has_replay"):
         print("error: the checkpoint has no replay (run.save_replay=false)", file=sys.stderr)
         return 2
-    cfg = evaluate.eval_config(cfg0, args.overrides)
-    env = runner.make_env(cfg0)
-    state, _ = evaluate.restore_state(ck, step, cfg0, env, replay=True)
+    cfg = session.eval_config(cfg0, args.overrides)
+    env = envs.from_config(cfg0.env)
+    state, _ = session.restore_state(ck, step, cfg0, env, replay=True)
     s = jax.tree.map(lambda x: x[args.seed], state)
     rep = s.replay
     vc, wc, length = cfg0.value, cfg0.wm, cfg0.replay.length
@@ -147,7 +146,7 @@ def main(argv=None) -> int:
 
     agent = agent_lib.make_agent(cfg, int(env.action_size))
     pl, model = agent.planner, agent.model
-    pp = agent_lib.plan_params(s.wm, s.value.target)
+    pp = wm.plan_params(s.wm, s.value.target)
     horizon = cfg.planner.horizon
 
     @jax.jit

@@ -113,3 +113,16 @@ __all__ = [
     "make",
     "registered",
 ]
+
+
+def from_config(env_cfg) -> Env:
+    """The task of a config's ``env`` section as the trainer drives it: action repeat, episode
+    limit, actions in [-1, 1], the configured physics options. ``env_cfg`` is any object with
+    ``task``, ``action_repeat``, ``episode_env_steps`` and ``physics`` (``mjx_collo.config.EnvConfig``)."""
+    return make(
+        env_cfg.task,
+        action_repeat=env_cfg.action_repeat,
+        episode_length=env_cfg.episode_env_steps,
+        normalize_actions=True,
+        physics=env_cfg.physics,
+    )

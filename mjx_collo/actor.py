@@ -1,4 +1,4 @@
-"""Dreamer actor-critic baseline (ALGORITHM.md §2.1, Dreamer v1 with this project's conventions).
+"""Dreamer actor-critic baseline (docs/ALGORITHM.md §2.1, Dreamer v1 with this project's conventions).
 
 Imagine ``actor.horizon`` steps from (stop-gradient) posterior starts with a tanh-normal actor,
 score them with lambda-returns of the frozen target value, and train the actor by backpropagating
@@ -8,7 +8,7 @@ its own state, so ``y_k = r_{k+1} + gamma [(1 - lam) V'(f_{k+1}) + lam y_{k+1}]`
 k = 0..H-1, with ``y_{H-1} = r_H + gamma V'(f_H)``, and ``actor_loss = -mean(sum_k w_k y_k) / H``
 with ``w_k = gamma^k``.
 
-Imagination protocol (:class:`ImaginationModel`, structurally the world model's ``ImagineFns``):
+Imagination protocol (:class:`ImaginationModel`, built by ``world_model.imagination_model``):
 ``img_step(params, state, a, key) -> state`` (stochastic prior step, batched over leading dims),
 ``get_feat(state) -> [..., F]``, ``reward(params, feat) -> [...]``. The value network comes from
 :mod:`mjx_collo.value`.

@@ -34,9 +34,11 @@ class AgentCarry:
 
 
 class Agent(NamedTuple):
+    """How a seed acts: its config (swept values applied), the world model as the planner's
+    latent model, and the planner (both None for the Dreamer actor, which acts from its actor)."""
+
     cfg: Config
     action_dim: int
-    fns: wm_lib.PlanningFns
     model: LatentModel | None
     planner: planner_lib.Planner | None
 
@@ -50,57 +52,28 @@ class Agent(NamedTuple):
 
 
 def value_bootstrap(cfg: Config) -> bool:
+    """Whether the planner reads the (target) value network: ColloDreamer and MPPI with a value."""
     return (
         cfg.planner.kind in ("collodreamer", "mppi_value")
         and cfg.value.enabled
-        and (cfg.value.bootstrap)
+        and cfg.value.bootstrap
     )
 
 
 def make_agent(cfg: Config, action_dim: int) -> Agent:
-    fns = wm_lib.planning_fns(cfg.wm, cfg.planner.space)
+    """The agent of ``cfg`` (which may hold traced swept values): the world model's latent model
+    (:func:`mjx_collo.world_model.latent_model`), with the clipped target value when the planner
+    bootstraps, and the planner over it."""
     if cfg.planner.kind == "dreamer":
-        return Agent(cfg, action_dim, fns, None, None)
+        return Agent(cfg, action_dim, None, None)
+    value = None
     if value_bootstrap(cfg):
 
         def value(vp, f):
             return value_lib.clip_value(cfg.value, value_lib.apply_value(cfg.value, vp, f))
 
-    else:
-        value = None
-
-    def step_reward_value(p, z, a):
-        nz, r, f = fns.step_reward_feat(p[0], z, a)
-        return nz, r, value(p[1], f)
-
-    model = LatentModel(
-        start=lambda p, ctx, a: fns.start(p[0], ctx, a),
-        step=lambda p, z, a: fns.step(p[0], z, a),
-        reward=lambda p, z: fns.reward(p[0], z),
-        value=None if value is None else (lambda p, z: value(p[1], fns.feat(p[0], z))),
-        feat=lambda p, z: fns.feat(p[0], z),
-        ctx_feat=lambda p, ctx: fns.ctx_feat(p[0], ctx),
-        step_reward=lambda p, z, a: fns.step_reward(p[0], z, a),
-        step_reward_value=None if value is None else step_reward_value,
-        step_feat=lambda p, z, a: fns.step_feat(p[0], z, a),
-        feat_reward=lambda p, f: fns.feat_reward(p[0], f),
-        feat_value=None if value is None else (lambda p, f: value(p[1], f)),
-    )
-    return Agent(cfg, action_dim, fns, model, planner_lib.make_planner(cfg, model, action_dim))
-
-
-def imagination_model(cfg: Config) -> actor_lib.ImaginationModel:
-    """The world model as the Dreamer actor's stochastic imagination protocol."""
-    return actor_lib.ImaginationModel(
-        img_step=lambda p, s, a, k: wm_lib.img_step(cfg.wm, p, s, a, k),
-        get_feat=wm_lib.get_feat,
-        reward=lambda p, f: wm_lib.reward(cfg.wm, p, f),
-    )
-
-
-def plan_params(wm_params: Any, value_target: Any) -> tuple[Any, Any]:
-    """Params of the planner's latent model: (world model, frozen target value)."""
-    return (wm_params, value_target)
+    model = wm_lib.latent_model(cfg.wm, cfg.planner.space, value)
+    return Agent(cfg, action_dim, model, planner_lib.make_planner(cfg, model, action_dim))
 
 
 def init_carry(agent: Agent, params: tuple[Any, Any], num_envs: int, key: jax.Array) -> AgentCarry:

@@ -16,11 +16,13 @@ Two constructs have no static trip count, and the result records how they were c
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 from jax.extend import core as jcore
 
 
@@ -112,3 +114,16 @@ def matmul_flops(fn: Callable, *args: Any, **kwargs: Any) -> FlopCount:
     acc = FlopCount()
     acc.flops = _count(closed.jaxpr, acc, 1.0)
     return acc
+
+
+def matmul_peak() -> float:
+    """GFLOP/s of a plain 1024^3 f32 matmul right now (the machine's achievable ceiling)."""
+    a = jnp.ones((1024, 1024), jnp.float32)
+    f = jax.jit(lambda x: x @ x)
+    jax.block_until_ready(f(a))
+    best = float("inf")
+    for _ in range(5):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(a))
+        best = min(best, time.perf_counter() - t0)
+    return 2 * 1024**3 / best / 1e9

@@ -1,39 +1,28 @@
 """XLA CPU devices for the seeds of a run, so that they execute in parallel on a multi-core host.
 
 XLA's CPU backend shows the whole host as a single device. Vmapped seeds then run as one stream of
-batched matmuls (one weight set per seed), and one seed's small planning matmuls keep only about
-1.3 of 2 cores busy (one default planning call: 233 ms on 2 cores, 303 ms pinned to one).
-``--xla_force_host_platform_device_count=N`` splits the host into N devices. The trainer then
-shards the seed axis over them (``trainer.batched``: ``shard_map``, each device its own block of
-seeds, one seed unbatched), and the seeds' programs run side by side on the cores.
+batched matmuls, and one seed's small planning matmuls keep only part of the cores busy.
+``--xla_force_host_platform_device_count=N`` splits the host into N devices; the trainer shards
+the seed axis over them (``trainer.batched``: ``shard_map``, each device its own block of seeds,
+one seed unbatched), and the seeds' programs run side by side on the cores.
 
-Must run before JAX initialises its backends. Only the CPU platform reads the flag: on a GPU or
-TPU host the accelerators stay the devices. An ``XLA_FLAGS`` that already sets the count wins.
-Imports nothing from JAX.
+* One run gets two devices: it trains on the first, and its evaluations run on the second while
+  the next chunk trains (``run.eval_overlap``).
+* Runs that outnumber the cores and split evenly over them get one device per core, each vmapping
+  ``runs / cores`` of them; other counts get one device per run (or the largest divisor <= 16).
+* When several runs' devices are a multiple of the cores, each device runs single-threaded
+  (``--xla_cpu_multi_thread_eigen=false``): the devices are the parallelism.
 
-A single run gets two devices: it trains on the first, and its evaluations run on the second while
-the next chunk trains (``run.eval_overlap``; ``runner.Run``), filling the cores one seed leaves idle.
-
-When the runs outnumber the cores and split evenly over them, they get one device per core, each
-vmapping ``runs / cores`` of them, instead of one device per run. On the 2-core VM, 4 seeds
-measured back to back: 2 devices, steady chunk 82.0 s and 217 s per evaluation
-(``bench_results/train_seeds4_2dev.json``); 4 devices, 82.3 s and 241 s
-(``bench_results/train_seeds4_4dev_backtoback.json``, only its 4-seed row). The chunks tie; the
-evaluations, 20 episodes of small planning matmuls, gain from 2 seeds sharing each matmul instead
-of 4 single-threaded programs time-slicing 2 cores.
-
-When the seeds' devices are a multiple of the host's cores, each device also runs its ops on one
-thread (``--xla_cpu_multi_thread_eigen=false``): the devices are then the parallelism, and Eigen's
-intra-op threads only contend for the same cores. On the 2-core VM, 4 seeds on 4 devices measured
-back to back: steady chunk 99.7 s with the threads, 91.0 s without; evaluation 273 s and 269 s
-(``bench_results/train_seeds4_eigen_on_worker.json``, ``bench_results/train_seeds_eigen.json``).
-3 seeds on 2 cores keep the threads: a 3-seed reacher run without them took 68 min where the
-same config with them had taken 58 min. A single run keeps them too: its training device needs
-both cores while no evaluation runs.
+The measurements behind each rule are in docs/OPERATIONS.md. Must run before JAX initialises its
+backends, so it imports nothing from JAX. An ``XLA_FLAGS`` that already sets the count wins, and
+on a host where JAX will run on an accelerator (:func:`accelerator`) the flags are left alone:
+there the GPU or TPU is the device, and several seeds share it vmapped.
 """
 
 from __future__ import annotations
 
+import glob
+import importlib.util
 import os
 import sys
 
@@ -48,6 +37,29 @@ def host_cores() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         return os.cpu_count() or 1
+
+
+# JAX's accelerator plugins (``pip install 'jax[cuda12]'`` etc.) and what shows a device is present.
+GPU_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_rocm60_plugin", "jax_rocm7_plugin")
+GPU_DEVICE_FILES = ("/dev/nvidiactl", "/dev/kfd")
+
+
+def accelerator(environ: dict[str, str] | None = None) -> str | None:
+    """The accelerator JAX will run on, found without importing JAX: ``JAX_PLATFORMS`` when set
+    (its first entry, None for ``cpu``), else ``"gpu"`` when a GPU plugin is installed and a GPU
+    device file exists, ``"tpu"`` when libtpu is installed and a TPU device exists, else None."""
+    env = os.environ if environ is None else environ
+    platforms = env.get("JAX_PLATFORMS", "").strip().lower()
+    if platforms:
+        first = platforms.split(",")[0].strip()
+        return None if first == "cpu" else first
+    if any(importlib.util.find_spec(m) for m in GPU_PLUGINS) and any(
+        os.path.exists(f) for f in GPU_DEVICE_FILES
+    ):
+        return "gpu"
+    if importlib.util.find_spec("libtpu") and glob.glob("/dev/accel*"):
+        return "tpu"
+    return None
 
 
 def device_count_for(num_runs: int, max_devices: int = MAX_DEVICES) -> int:
@@ -68,13 +80,15 @@ def configure(
     get :func:`device_count_for`. Several runs on a multiple of ``cores`` devices also get
     single-threaded devices
     (``--xla_cpu_multi_thread_eigen=false``) unless ``XLA_FLAGS`` sets that. Returns the device count it
-    set, or None when it left ``XLA_FLAGS`` alone (a count of 1, the user's own count, or JAX
-    already imported in this process: the flag would have no effect here and would only leak
-    into subprocesses, e.g. when tests call ``train.main``).
+    set, or None when it left ``XLA_FLAGS`` alone: a count of 1, the user's own count, an
+    accelerator host (:func:`accelerator`), or JAX already imported in this process (the flag
+    would have no effect here and would only leak into subprocesses).
     """
     if environ is None and "jax" in sys.modules:
         return None
     env = os.environ if environ is None else environ
+    if accelerator(env) is not None:
+        return None
     flags = env.get("XLA_FLAGS", "")
     cores = host_cores() if cores is None else cores
     if num_runs == 1:

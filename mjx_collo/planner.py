@@ -2,7 +2,7 @@
 
 ``make_planner(cfg, model, action_dim)`` builds a :class:`Planner` for ``planner.kind``:
 
-* ``latco`` / ``collodreamer``: latent collocation (ALGORITHM.md §3, §4.1) with the primal solver
+* ``latco`` / ``collodreamer``: latent collocation (docs/ALGORITHM.md §3, §4.1) with the primal solver
   ``planner.solver`` (``gauss_newton`` = exact LatCo, ``cg`` = matrix-free GN, ``adam``);
   ColloDreamer adds the discounted rewards and the frozen-value bootstrap; optionally
   (``planner.refine_iters``, off by default) the actions are then refined by Adam through the
@@ -40,7 +40,7 @@ from mjx_collo.config import Config
 from mjx_collo.planners import collocation, shooting
 from mjx_collo.planners.collocation import PlanState
 from mjx_collo.planners.objective import make_problem
-from mjx_collo.planners.protocol import LatentModel, attach_value, rollout
+from mjx_collo.planners.protocol import LatentModel, rollout
 from mjx_collo.planners.shooting import ShootState
 
 __all__ = [
@@ -51,7 +51,6 @@ __all__ = [
     "PlanState",
     "Planner",
     "ShootState",
-    "attach_value",
     "cache_len",
     "make_planner",
     "mpc_init",

@@ -1,5 +1,5 @@
 """Host side of a training run: build or resume, AOT-compile, loop over chunks, evaluate,
-checkpoint, log. ``train.py`` is the CLI around :func:`run`.
+checkpoint, log. ``train.py`` is the CLI around :class:`Run`; it builds the env and hands it in.
 
 Resuming: running again on a run directory that holds checkpoints restores the latest one (state,
 replay, schedule) and continues exactly as if never interrupted; a different config is refused
@@ -26,20 +26,6 @@ from mjx_collo import metrics as metrics_lib
 from mjx_collo import replay as replay_lib
 from mjx_collo import trainer as trainer_lib
 from mjx_collo.config import Config
-
-
-def make_env(cfg: Config) -> Any:
-    """The task of ``cfg.env`` as the trainer drives it: action repeat, episode limit, actions in
-    [-1, 1], the configured physics options."""
-    import envs
-
-    return envs.make(
-        cfg.env.task,
-        action_repeat=cfg.env.action_repeat,
-        episode_length=cfg.env.episode_env_steps,
-        normalize_actions=True,
-        physics=cfg.env.physics,
-    )
 
 
 def is_main_process() -> bool:

@@ -1,4 +1,4 @@
-"""Value network, slow target, lambda-returns and the value train step (ALGORITHM.md §4.3-4.4).
+"""Value network, slow target, lambda-returns and the value train step (docs/ALGORITHM.md §4.3-4.4).
 
 Convention (pitfall 7): ``V(f_t)`` estimates ``E[sum_{j>=1} gamma^(j-1) r_{t+j}]`` and *excludes* the
 reward of its own state; the planner bootstraps with ``gamma^H V'(z_H)``. Targets are

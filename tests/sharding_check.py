@@ -11,13 +11,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mjx_collo import config, runner, trainer
+import envs
+from mjx_collo import config, trainer
 
 
 def main() -> None:
     assert jax.device_count() == 2, f"expected 2 devices, got {jax.devices()}"
     cfg = config.load(task="reacher_easy", presets=["debug"])
-    env = runner.make_env(cfg)
+    env = envs.from_config(cfg.env)
     tr = trainer.make_train(cfg, env)
     keys = trainer.seed_keys(cfg, 2)
     out = {}

@@ -1,11 +1,10 @@
-"""CPU device split for multi-seed runs (mjx_collo/host_devices.py, train.num_runs)."""
+"""CPU device split for multi-seed runs (mjx_collo/host_devices.py, session.count_runs)."""
 
 from __future__ import annotations
 
 import pytest
 
-import train
-from mjx_collo import host_devices
+from mjx_collo import host_devices, session
 
 
 @pytest.mark.parametrize(
@@ -68,11 +67,8 @@ def test_configure_leaves_a_prime_run_count_and_the_users_own_count_alone():
 
 
 def test_run_count_is_seeds_times_swept_values():
-    args = train.parse(
-        ["--seeds", "3", "--sweep", "value.gamma=0.9,0.99;wm.optim.lr=1e-4,3e-4,6e-4"]
-    )
-    assert train.num_runs(args) == 18
-    assert train.num_runs(train.parse(["--seeds", "2"])) == 2
+    assert session.count_runs(3, "value.gamma=0.9,0.99;wm.optim.lr=1e-4,3e-4,6e-4") == 18
+    assert session.count_runs(2, None) == 2
 
 
 def test_configure_does_nothing_once_jax_is_imported(monkeypatch):
@@ -82,3 +78,27 @@ def test_configure_does_nothing_once_jax_is_imported(monkeypatch):
     import os
 
     assert "XLA_FLAGS" not in os.environ
+
+
+@pytest.mark.parametrize("platforms", ["cuda", "gpu", "tpu", "cuda,cpu"])
+def test_an_accelerator_platform_leaves_the_cpu_flags_alone(platforms):
+    """On a GPU or TPU host the accelerator is the device: no forced CPU device count, no
+    single-threaded CPU devices, whatever the number of seeds."""
+    for runs in (1, 4, 16):
+        env = {"JAX_PLATFORMS": platforms, "XLA_FLAGS": "--xla_dump_to=/tmp/x"}
+        assert host_devices.configure(runs, env, cores=2) is None
+        assert env["XLA_FLAGS"] == "--xla_dump_to=/tmp/x"
+    assert host_devices.configure(4, {"JAX_PLATFORMS": "cpu"}, cores=2) == 2
+
+
+def test_an_installed_gpu_plugin_counts_only_with_a_gpu_present(monkeypatch):
+    """A CUDA plugin installed on a machine without a GPU (JAX falls back to the CPU) keeps the
+    CPU layout; with the NVIDIA device present the flags are left alone."""
+    plugin = lambda name: object() if name == "jax_cuda12_plugin" else None  # noqa: E731
+    monkeypatch.setattr(host_devices.importlib.util, "find_spec", plugin)
+    monkeypatch.setattr(host_devices.os.path, "exists", lambda p: False)
+    assert host_devices.accelerator({}) is None
+    assert host_devices.configure(4, {}, cores=2) == 2
+    monkeypatch.setattr(host_devices.os.path, "exists", lambda p: p == "/dev/nvidiactl")
+    assert host_devices.accelerator({}) == "gpu"
+    assert host_devices.configure(4, {}, cores=2) is None

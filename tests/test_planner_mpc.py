@@ -12,7 +12,6 @@ from mjx_collo import config
 from mjx_collo import value as V
 from mjx_collo.planner import (
     LatentModel,
-    attach_value,
     cache_len,
     make_planner,
     mpc_init,
@@ -167,9 +166,17 @@ def test_plan_inner_value_learning_shares_updates_across_envs():
         "value.mode=plan_inner",
         method="collodreamer",
     )
-    feat = lambda p, z: jnp.concatenate([z, jnp.abs(z)])
     vcfg = cfg.value
-    model = attach_value(MODEL._replace(feat=feat), feat, lambda vp, f: V.apply_value(vcfg, vp, f))
+    # The integrator with a value network on features of z; params are (model, value params) as
+    # for the world model's adapter (world_model.latent_model).
+    feat = lambda pp, z: jnp.concatenate([z, jnp.abs(z)])
+    model = LatentModel(
+        start=lambda pp, c, a: MODEL.start(pp[0], c, a),
+        step=lambda pp, z, a: MODEL.step(pp[0], z, a),
+        reward=lambda pp, z: MODEL.reward(pp[0], z),
+        value=lambda pp, z: V.apply_value(vcfg, pp[1], feat(pp, z)),
+        feat=feat,
+    )
     planner = make_planner(cfg, model, 2)
     vstate = V.init_value(vcfg, jax.random.PRNGKey(0), 4)
     params = (jnp.float32(0.0), vstate.target)

@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import shutil
-from unittest import mock
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
-import evaluate as eval_cli
-import train as train_cli
+import envs
 from mjx_collo import config, metrics, runner, trainer
 
 TASK = "reacher_easy"
@@ -28,7 +30,7 @@ def debug_cfg(method: str = "collodreamer", overrides=()) -> config.Config:
 
 
 def make_env(cfg: config.Config):
-    return runner.make_env(cfg)
+    return envs.from_config(cfg.env)
 
 
 @functools.cache
@@ -38,24 +40,8 @@ def uninterrupted_and_resumed(tmp_root: str):
     cfg = debug_cfg()
     env = make_env(cfg)
     total = 2 * cfg.run.chunk_env_steps
-    traces = []
-    make_train = trainer.make_train
-
-    def counting_make_train(cfg, env):
-        tr = make_train(cfg, env)
-
-        def chunk(s, it):
-            traces.append(1)
-            return tr.chunk(s, it)
-
-        return tr._replace(chunk=chunk)
-
-    with mock.patch.object(runner.trainer_lib, "make_train", counting_make_train):
-        run_a = runner.Run(
-            cfg, env, f"{tmp_root}/a", num_seeds=2, progress=False, log=lambda *_: None
-        )
+    run_a = runner.Run(cfg, env, f"{tmp_root}/a", num_seeds=2, progress=False, log=lambda *_: None)
     res_a = run_a.run(total)
-    res_a.chunk_traces = len(traces)
     state_a = jax.device_get(run_a.state)
     run_a.close()
 
@@ -141,48 +127,77 @@ def test_seeds_differ_in_init_and_data(runs):
     assert not np.allclose(obs[0], obs[1])
 
 
-def test_chunk_compiles_once(runs):
-    """Run A trained 2 chunks (and evaluated and checkpointed between them): the chunk program
-    was traced, hence compiled, exactly once."""
-    _, (res_a, _), _ = runs
-    assert len(res_a.chunk_s) == 2
-    assert res_a.chunk_traces == 1
+def test_chunk_traces_once_across_calls():
+    """The jitted chunk called for two consecutive chunks is traced, hence compiled, once: the
+    state it returns has exactly the shapes, dtypes and structure it took (a weak-typed or
+    re-shaped leaf would retrace and recompile every chunk), and the schedule position is an
+    array, not a Python int baked into the program."""
+    import jax.numpy as jnp
+
+    cfg = debug_cfg()
+    tr = trainer.make_train(cfg, make_env(cfg))
+    traces = []
+
+    def chunk(s, it):
+        traces.append(1)
+        return tr.chunk(s, it)
+
+    init, chunk_fn, _ = trainer.batched(tr._replace(chunk=chunk))
+    s = init(trainer.seed_keys(cfg, 2), {})
+    for c in range(2):
+        s, m = chunk_fn(s, jnp.asarray(c * tr.iterations_per_chunk, jnp.int32))
+    assert len(traces) == 1
+    assert np.all(np.asarray(s.updates) > 0)  # the second chunk trained
 
 
-def _main_error(capsys, argv) -> str:
-    code = train_cli.main(argv)
-    err = capsys.readouterr().err.strip()
-    assert code == 2, err
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _cli(script: str, argv: list[str]) -> subprocess.CompletedProcess:
+    """Run ``train.py`` / ``evaluate.py`` as a user does (a fresh process, the test suite's
+    compile cache)."""
+    env = {**os.environ, "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla")}
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *argv],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env=env,
+        timeout=600,
+    )
+
+
+def _main_error(argv, script: str = "train.py") -> str:
+    proc = _cli(script, argv)
+    err = proc.stderr.strip()
+    assert proc.returncode == 2, (proc.stdout, err)
     assert len(err.splitlines()) == 1, err
     return err
 
 
-def test_bad_env_fails_with_one_line(capsys, tmp_path):
-    err = _main_error(capsys, ["--env", "cheeta", "--run", str(tmp_path)])
+def test_bad_env_fails_with_one_line(tmp_path):
+    err = _main_error(["--env", "cheeta", "--run", str(tmp_path)])
     assert "unknown task 'cheeta'" in err and "cheetah_run" in err
 
 
-def test_bad_override_key_fails_with_one_line(capsys, tmp_path):
-    err = _main_error(capsys, ["--env", "reacher", "--run", str(tmp_path), "wm.detr=3"])
+def test_bad_override_key_fails_with_one_line(tmp_path):
+    err = _main_error(["--env", "reacher", "--run", str(tmp_path), "wm.detr=3"])
     assert "wm.detr" in err and "deter" in err
 
 
-def test_wrong_type_fails_with_one_line(capsys, tmp_path):
-    err = _main_error(capsys, ["--env", "reacher", "--run", str(tmp_path), "wm.deter=abc"])
+def test_wrong_type_fails_with_one_line(tmp_path):
+    err = _main_error(["--env", "reacher", "--run", str(tmp_path), "wm.deter=abc"])
     assert "wm.deter" in err and "integer" in err
 
 
-def test_bad_sweep_fails_with_one_line(capsys, tmp_path):
-    err = _main_error(
-        capsys, ["--env", "reacher", "--run", str(tmp_path), "--sweep", "wm.deter=100,200"]
-    )
+def test_bad_sweep_fails_with_one_line(tmp_path):
+    err = _main_error(["--env", "reacher", "--run", str(tmp_path), "--sweep", "wm.deter=100,200"])
     assert "wm.deter" in err and "float" in err
 
 
-def test_checkpoint_from_another_config_fails_with_one_line(capsys, runs):
+def test_checkpoint_from_another_config_fails_with_one_line(runs):
     _, (res_a, _), _ = runs
     err = _main_error(
-        capsys,
         [
             "--env",
             TASK,
@@ -198,22 +213,27 @@ def test_checkpoint_from_another_config_fails_with_one_line(capsys, runs):
     assert "different config" in err and "wm.deter: 16 -> 32" in err
 
 
-def test_make_eval_with_another_planner_budget(capsys, runs, tmp_path):
+def test_make_eval_with_another_planner_budget(runs, tmp_path):
     """`make eval` on the run directory with a planner override that changes the shape of the
     acting caches saved in the checkpoint (mpc_steps 2 -> 4): it restores, plans with the new
     setting, and writes a per-seed table and eval.json that records the override."""
-    _, (res_a, _), _ = runs
-    code = eval_cli.main(
+    cfg, (res_a, _), _ = runs
+    proc = _cli(
+        "evaluate.py",
         ["--ckpt", str(res_a.run_dir), "--episodes", "2", "--out", str(tmp_path)]
-        + ["planner.mpc_steps=4", "planner.iters=5"]
+        + ["planner.mpc_steps=4", "planner.iters=5"],
     )
-    out = capsys.readouterr().out
-    assert code == 0, out
+    out = proc.stdout
+    assert proc.returncode == 0, (out, proc.stderr)
     result = json.loads((tmp_path / "eval.json").read_text())
     assert result["overrides"] == ["planner.mpc_steps=4", "planner.iters=5"]
     assert result["env_steps"] == 800 and len(result["runs"]) == 2
     returns = np.array([r["returns"] for r in result["runs"]])
-    assert returns.shape == (2, 2) and np.all(np.isfinite(returns)) and np.all(returns >= 0)
+    assert returns.shape == (2, 2) and np.all(np.isfinite(returns))
+    # the episodes acted with the override (the saved caches were shaped for mpc_steps=2)
+    assert result["planner"]["mpc_steps"] == 4 and result["planner"]["iters"] == 5
+    # dm_control rewards lie in [0, 1] per env step: a return is at most the episode's length
+    assert np.all(returns <= cfg.env.episode_env_steps)
     assert "seed=0" in out and "seed=1" in out and "all runs" in out
 
 
@@ -225,13 +245,9 @@ def test_make_eval_with_another_planner_budget(capsys, runs, tmp_path):
         ("planner.mpc_step=4", "unknown config key 'planner.mpc_step'"),
     ],
 )
-def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(
-    capsys, runs, override, message
-):
+def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(runs, override, message):
     _, (res_a, _), _ = runs
-    code = eval_cli.main(["--ckpt", str(res_a.run_dir), override])
-    err = capsys.readouterr().err.strip()
-    assert code == 2 and len(err.splitlines()) == 1, err
+    err = _main_error(["--ckpt", str(res_a.run_dir), override], "evaluate.py")
     assert message in err, err
 
 
@@ -286,8 +302,8 @@ def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
         assert all(b == ((), ()) for b in batch_dims) == (seeds == 1), batch_dims
 
 
-def test_incomplete_distributed_arguments_fail_with_one_line(capsys):
-    err = _main_error(capsys, ["--env", "reacher", "--distributed", "--coordinator", "h:1234"])
+def test_incomplete_distributed_arguments_fail_with_one_line():
+    err = _main_error(["--env", "reacher", "--distributed", "--coordinator", "h:1234"])
     assert "--num-processes" in err and "--process-id" in err
 
 

@@ -315,46 +315,49 @@ def test_unimix_floors_probabilities():
 
 
 @pytest.mark.parametrize("latent", LATENTS)
-def test_planning_fns_shapes_and_agreement_with_img_step_means(latent):
+def test_latent_model_shapes_and_agreement_with_img_step_means(latent):
+    """The planners' adapter (the one the trainer uses): both plan spaces follow the RSSM's
+    deterministic (prior-mean) rollout, rewards agree, and the functions vmap and differentiate."""
     cfg, params, _, _, _, post, _ = _model(latent)
     acts = jax.random.uniform(jax.random.key(3), (4, ACT), minval=-1, maxval=1)
-    full, red = wm.planning_fns(cfg, "full"), wm.planning_fns(cfg, "reduced")
+    full, red = wm.latent_model(cfg, "full"), wm.latent_model(cfg, "reduced")
     s = wm.stoch_size(cfg)
-    assert full.size == s + cfg.deter and red.size == cfg.deter
+    full_size, red_size = s + cfg.deter, cfg.deter
 
     @jax.jit
     def run(params, post):
         ctx = jax.tree.map(lambda x: x[0, -1], post)  # one env's filtered state (unbatched)
+        pp = wm.plan_params(params)
         # Reference: deterministic RSSM rollout from ctx (stoch := prior mean after step 1).
         ref = [wm.img_step_mean(cfg, params, ctx, acts[0])]
         for a in acts[1:]:
             ref.append(wm.img_step_mean(cfg, params, ref[-1], a))
-        zf, zr = [full.start(params, ctx, acts[0])], [red.start(params, ctx, acts[0])]
+        zf, zr = [full.start(pp, ctx, acts[0])], [red.start(pp, ctx, acts[0])]
         for a in acts[1:]:
-            zf.append(full.step(params, zf[-1], a))
-            zr.append(red.step(params, zr[-1], a))
+            zf.append(full.step(pp, zf[-1], a))
+            zr.append(red.step(pp, zr[-1], a))
         return {
             "ref_feat": jnp.stack([wm.get_feat(x) for x in ref]),
             "ref_deter": jnp.stack([x.deter for x in ref]),
             "ref_reward": jnp.stack([wm.reward(cfg, params, wm.get_feat(x)) for x in ref]),
             "zf": jnp.stack(zf),
             "zr": jnp.stack(zr),
-            "feat_f": jnp.stack([full.feat(params, z) for z in zf]),
-            "feat_r": jnp.stack([red.feat(params, z) for z in zr]),
-            "rew_f": jnp.stack([full.reward(params, z) for z in zf]),
-            "rew_r": jnp.stack([red.reward(params, z) for z in zr]),
-            "ctx_feat": full.ctx_feat(params, ctx),
+            "feat_f": jnp.stack([full.feat(pp, z) for z in zf]),
+            "feat_r": jnp.stack([red.feat(pp, z) for z in zr]),
+            "rew_f": jnp.stack([full.reward(pp, z) for z in zf]),
+            "rew_r": jnp.stack([red.reward(pp, z) for z in zr]),
+            "ctx_feat": full.ctx_feat(pp, ctx),
             "post_feat": wm.get_feat(ctx),
             # Vmappable over plans, differentiable (the planner takes Jacobians).
-            "vmapped": jax.vmap(full.step, (None, 0, None))(params, jnp.stack(zf), acts[0]),
-            "jac": jax.jacfwd(red.step, argnums=(1, 2))(params, zr[-1], acts[0]),
+            "vmapped": jax.vmap(full.step, (None, 0, None))(pp, jnp.stack(zf), acts[0]),
+            "jac": jax.jacfwd(red.step, argnums=(1, 2))(pp, zr[-1], acts[0]),
             # step_reward (the planners' shared pass) == step and reward called separately.
-            "sr_f": full.step_reward(params, zf[0], acts[1]),
-            "sr_r": red.step_reward(params, zr[0], acts[1]),
+            "sr_f": full.step_reward(pp, zf[0], acts[1]),
+            "sr_r": red.step_reward(pp, zr[0], acts[1]),
         }
 
     o = run(params, post)
-    assert o["zf"].shape == (4, full.size) and o["zr"].shape == (4, red.size)
+    assert o["zf"].shape == (4, full_size) and o["zr"].shape == (4, red_size)
     _close(o["zf"], o["ref_feat"])
     _close(o["zr"], o["ref_deter"])
     _close(o["feat_f"], o["feat_r"])
@@ -365,25 +368,25 @@ def test_planning_fns_shapes_and_agreement_with_img_step_means(latent):
     for (z_next, r), zs, rs in ((o["sr_f"], o["zf"], o["rew_f"]), (o["sr_r"], o["zr"], o["rew_r"])):
         _close(z_next, zs[1])
         _close(r, rs[0])
-    assert o["vmapped"].shape == (4, full.size)
-    assert o["jac"][0].shape == (red.size, red.size) and o["jac"][1].shape == (red.size, ACT)
+    assert o["vmapped"].shape == (4, full_size)
+    assert o["jac"][0].shape == (red_size, red_size) and o["jac"][1].shape == (red_size, ACT)
     assert float(jnp.abs(o["jac"][1]).max()) > 0
     if latent == "categorical":
         sums = o["zf"][:, :s].reshape(4, cfg.stoch, -1).sum(-1)
         np.testing.assert_allclose(sums, 1.0, atol=1e-5)
     with pytest.raises(ValueError, match="reduced"):
-        wm.planning_fns(cfg, "bogus")
+        wm.latent_model(cfg, "bogus")
 
 
-def test_imagine_fns_protocol():
+def test_imagination_model_protocol():
     cfg, params, _, _, _, post, _ = _model("categorical")
-    fns = wm.imagine_fns(cfg)
+    fns = wm.imagination_model(cfg)
 
     @jax.jit
     def run(params, post):
         state = jax.tree.map(lambda x: x[:, -1], post)
         nxt = fns.img_step(params, state, jnp.zeros((B, ACT)), jax.random.key(0))
-        zero = fns.initial((B,))
+        zero = wm.initial_state(cfg, (B,))
         return fns.get_feat(nxt), fns.reward(params, fns.get_feat(nxt)), zero, nxt
 
     feat, rew, zero, nxt = run(params, post)
@@ -667,22 +670,12 @@ def test_shared_pass_gives_the_values_and_gradients_of_separate_calls(space):
     from mjx_collo.planners import protocol as proto
 
     cfg, params, _, _, _, post, _ = _model("categorical")
-    fns = wm.planning_fns(cfg, space)
     vp = jax.random.normal(jax.random.key(5), (wm.feat_size(cfg),)) / 10.0
 
     def value(vp, f):  # a stand-in value head: any function of the features
         return jnp.tanh(f @ vp) * 3.0
 
-    base = proto.LatentModel(
-        start=fns.start,
-        step=fns.step,
-        reward=fns.reward,
-        feat=fns.feat,
-        step_reward=fns.step_reward,
-        step_feat=fns.step_feat,
-        feat_reward=fns.feat_reward,
-    )
-    batched = proto.attach_value(base, fns.feat, value, fns.step_reward_feat)
+    batched = wm.latent_model(cfg, space, value)
     shared = batched._replace(step_feat=None)
     apart = shared._replace(step_reward_value=None, step_reward=None)
     assert shared.step_reward_value is not None and batched.feat_value is not None
@@ -712,7 +705,7 @@ def test_shared_pass_gives_the_values_and_gradients_of_separate_calls(space):
     _close(o["shared"], o["apart"])
     _close(o["batched"], o["apart"])
     z, r, v = o["apart"][:3]
-    _close(v, jax.vmap(lambda zz: value(vp, fns.feat(params, zz)))(z))
+    _close(v, jax.vmap(lambda zz: value(vp, batched.feat(p, zz)))(z))
     assert float(jnp.std(v)) > 1e-3 and float(jnp.abs(o["apart"][6]).max()) > 0
 
 

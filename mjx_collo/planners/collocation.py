@@ -1,4 +1,4 @@
-"""LatCo collocation and ColloDreamer's value-bootstrapped collocation (ALGORITHM.md §3, §4.1).
+"""LatCo collocation and ColloDreamer's value-bootstrapped collocation (docs/ALGORITHM.md §3, §4.1).
 
 The plan (latents, actions, multipliers) is an explicit :class:`PlanState` carry. One planning call
 runs K primal steps with the chosen solver, each followed by LatCo's multiplier update, inside one

@@ -1,4 +1,4 @@
-"""LatCo's constraint violations and log-multiplicative multiplier update (ALGORITHM.md §3.4).
+"""LatCo's constraint violations and log-multiplicative multiplier update (docs/ALGORITHM.md §3.4).
 
 ``lambda <- lambda * (1 + alpha * log10(viol / eps + eta))``, clamped to ``lam_clip``. With LC's
 alpha = 0.1 and eta = 0.1 the factor lies in [0.9, ...), its fixed point is viol = (1 - eta) eps,

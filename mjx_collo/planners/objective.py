@@ -1,4 +1,4 @@
-"""The collocation problem: residuals, weights and the exact objective (ALGORITHM.md §3.2, §4.1).
+"""The collocation problem: residuals, weights and the exact objective (docs/ALGORITHM.md §3.2, §4.1).
 
 Decision variables are ``z`` [H, Z] (z_1..z_H) and ``a`` [H, A] (a_0..a_{H-1}); the context x_0 is
 fixed exactly. Residual rows, each scaled by LC's kappa:

@@ -1,11 +1,12 @@
 """The latent-model protocol the planners are written against, and rollouts through it.
 
 A :class:`LatentModel` is a NamedTuple of pure, *unbatched* functions; callers vmap over envs and
-seeds. ``params`` is an opaque pytree (world-model params, plus target-value params when the model
+seeds. The world model's is built by :func:`mjx_collo.world_model.latent_model`; tests also write
+small analytic ones. ``params`` is an opaque pytree (world-model params, plus target-value params when the model
 bootstraps). Plan-space states ``z`` are flat vectors ``[Z]``; what they mean (full ``[stoch, deter]``
 or reduced ``deter``) is the world model's business.
 
-Conventions (ALGORITHM.md §4.1, pitfall 7):
+Conventions (docs/ALGORITHM.md §4.1, pitfall 7):
   * ``reward(params, z)`` is the reward received on *arriving* in ``z``;
   * ``value(params, z)`` is the discounted value of ``z`` *excluding* its own reward, so the planner
     maximises ``J = sum_{k=1..H} gamma^(k-1) r(z_k) + gamma^H V(z_H)``.
@@ -63,46 +64,6 @@ class LatentModel(NamedTuple):
     step_feat: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]] | None = None
     feat_reward: Callable[[Params, jax.Array], jax.Array] | None = None
     feat_value: Callable[[Params, jax.Array], jax.Array] | None = None
-
-
-def attach_value(
-    model: LatentModel,
-    feat: Callable[[Params, jax.Array], jax.Array],
-    value: Callable[[Params, jax.Array], jax.Array],
-    step_reward_feat: Callable[[Params, jax.Array, jax.Array], tuple[Any, Any, Any]] | None = None,
-) -> LatentModel:
-    """Model whose params are ``(wm_params, value_params)`` and whose value is ``value(vp, feat(z))``.
-
-    Args:
-      model: world-model functions over ``wm_params`` (its own ``value`` is replaced; its
-        ``ctx_feat``, ``step_feat`` and ``feat_reward`` are kept).
-      feat: ``(wm_params, z [Z]) -> [F]``.
-      value: ``(value_params, f [F]) -> []`` deterministic (target) value network.
-      step_reward_feat: optional ``(wm_params, z, a) -> (step(z, a), reward(z), feat(z))`` in one
-        pass; gives the model its ``step_reward_value``.
-    """
-    ctx_feat, step_reward = model.ctx_feat, model.step_reward
-    step_feat, feat_reward = model.step_feat, model.feat_reward
-    srv = None
-    if step_reward_feat is not None:
-
-        def srv(p: Params, z: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-            nz, r, f = step_reward_feat(p[0], z, a)
-            return nz, r, value(p[1], f)
-
-    return LatentModel(
-        start=lambda p, ctx, a: model.start(p[0], ctx, a),
-        step=lambda p, z, a: model.step(p[0], z, a),
-        reward=lambda p, z: model.reward(p[0], z),
-        value=lambda p, z: value(p[1], feat(p[0], z)),
-        feat=lambda p, z: feat(p[0], z),
-        ctx_feat=None if ctx_feat is None else (lambda p, ctx: ctx_feat(p[0], ctx)),
-        step_reward=None if step_reward is None else (lambda p, z, a: step_reward(p[0], z, a)),
-        step_reward_value=srv,
-        step_feat=None if step_feat is None else (lambda p, z, a: step_feat(p[0], z, a)),
-        feat_reward=None if feat_reward is None else (lambda p, f: feat_reward(p[0], f)),
-        feat_value=lambda p, f: value(p[1], f),
-    )
 
 
 def latent_size(model: LatentModel, params: Params, ctx: Context, action_dim: int) -> int:

@@ -1,6 +1,6 @@
 """Shooting baselines: CEM, MPPI (LatCo's ``shooting_cem``) and TD-MPC2-style ``mppi_value``.
 
-ALGORITHM.md §5. Each iteration samples ``samples`` action sequences from N(mean, std), clips them
+docs/ALGORITHM.md §5. Each iteration samples ``samples`` action sequences from N(mean, std), clips them
 to [-1, 1], rolls them out deterministically through the model and scores them by
 ``sum_k gamma^(k-1) r(z_k)`` (+ ``gamma^H V(z_H)`` for ``mppi_value``). Updates:
 

@@ -1,4 +1,4 @@
-"""Primal steps of the collocation planner (ALGORITHM.md §3.3, Appendix B).
+"""Primal steps of the collocation planner (docs/ALGORITHM.md §3.3, Appendix B).
 
 Every solver maps ``(problem, z, a, lam, nu, state)`` to the next ``(z, a, state)`` and returns the
 dynamics residual ``d`` [H, Z] it evaluated at the *input* plan (reused for the multiplier update).

@@ -1,0 +1,98 @@
+"""What the command-line scripts share: JAX setup, a run's default directory and size, and
+loading a run's checkpoint for evaluation. ``train.py``, ``evaluate.py``, the benchmarks and the
+tests import this module; they never import each other.
+
+The env is not built here: scripts build it (``envs.from_config(cfg.env)``) and hand it over, so
+the library does not depend on the task suite.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Any
+
+from mjx_collo import config as config_lib
+from mjx_collo.config import Config
+
+# How a trained agent acts; every other key shapes what was trained, so `make eval` may override
+# only these.
+EVAL_SECTIONS = ("planner",)
+
+
+def setup_jax() -> None:
+    """Persistent compilation cache (``MJX_COLLO_CACHE``, default ``~/.cache/mjx_collo/xla``):
+    re-running, resuming or evaluating the same config skips most of the XLA compile time."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:  # already configured (e.g. by the test suite)
+        return
+    cache = Path(os.environ.get("MJX_COLLO_CACHE", Path.home() / ".cache" / "mjx_collo" / "xla"))
+    cache.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.0)
+
+
+def default_run_dir(
+    task: str, method: str, seeds: int, presets: list[str], sweep: str | None, overrides: list[str]
+) -> Path:
+    """``runs/<task>-<method>-s<seeds>[-<presets>][-<hash of overrides and sweep>]``:
+    deterministic per command, so re-running the same command resumes it."""
+    parts = [task, method, f"s{seeds}"] + presets
+    extra = " ".join(sorted(overrides)) + (f" sweep={sweep}" if sweep else "")
+    if extra:
+        parts.append(hashlib.sha1(extra.encode()).hexdigest()[:8])
+    return Path("runs") / "-".join(parts)
+
+
+def count_runs(seeds: int, sweep: str | None) -> int:
+    """Seeds x swept values, counted from the raw sweep text (validated later, by
+    ``config.parse_sweep``; this count only sizes the CPU devices before JAX starts)."""
+    n = max(seeds, 1)
+    for item in (sweep or "").replace(";", " ").split():
+        values = [v for v in item.partition("=")[2].split(",") if v.strip()]
+        n *= max(len(values), 1)
+    return n
+
+
+def eval_config(cfg: Config, overrides: list[str]) -> Config:
+    """A checkpoint's config with evaluation-time ``planner.*`` overrides applied."""
+    if not overrides:
+        return cfg
+    new = config_lib.build(
+        config_lib.apply_overrides(config_lib.to_dict(cfg), overrides, EVAL_SECTIONS)
+    )
+    if (new.planner.kind == "dreamer") != (cfg.planner.kind == "dreamer"):
+        raise config_lib.ConfigError(
+            f"cannot evaluate a planner.kind={cfg.planner.kind} checkpoint with "
+            f"planner.kind={new.planner.kind}: only dreamer checkpoints hold an actor, and the "
+            "actor is their policy; switch between the planners (latco, collodreamer, cem, mppi, "
+            "mppi_value) instead"
+        )
+    return new
+
+
+def restore_state(ckpt, step: int, cfg: Config, env: Any, replay: bool = False):
+    """The seed-stacked train state of checkpoint ``step`` and the seed keys; the replay only with
+    ``replay=True`` (the checkpoint must hold one), else ``state.replay`` is None.
+
+    cfg: the checkpoint's own config: the state's shapes follow it (the acting caches depend on
+    planner.mpc_steps), whatever planner settings the evaluation then uses.
+    """
+    import jax
+    import numpy as np
+
+    from mjx_collo import trainer
+
+    meta = ckpt.meta(step)
+    n = meta["num_runs"]
+    keys = trainer.seed_keys(cfg, n)
+    # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
+    hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
+    init = trainer.make_train(cfg, env).init
+    abstract = jax.eval_shape(jax.vmap(init), keys, hyper)
+    state, rep, _ = ckpt.restore(
+        abstract.replace(replay=None), abstract.replay if replay else None, step
+    )
+    return state.replace(replay=rep), keys
