@@ -2,7 +2,11 @@
 PYTHON ?= python3.11
 VENV   := .venv
 PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed
+# GPU=1 also installs jax's CUDA plugin matching the pinned jax (the `gpu` extra of pyproject.toml).
+GPU    ?= 0
+comma  := ,
+EXTRAS := test$(if $(filter 1,$(GPU)),$(comma)gpu)
+STAMP  := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 ENV     ?= cheetah
 METHOD  ?= collodreamer
@@ -31,7 +35,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet -e '.[$(EXTRAS)]'
 	@touch $(STAMP)
 
 train: install
