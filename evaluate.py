@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     import numpy as np
 
     import envs
-    from mjx_collo import checkpoint, config, session, trainer
+    from mjx_collo import checkpoint, config, parallel, session, trainer
 
     session.setup_jax()
     try:
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     state, keys = session.restore_state(ckpt, step, cfg, env)
     t = time.perf_counter()
     eval_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, step), 7))(keys)
-    evaluate_fn = trainer.batched(tr)[2]  # one seed runs unbatched (trainer.over_seeds)
+    evaluate_fn = parallel.batched(tr)[2]  # one seed runs unbatched (parallel.over_seeds)
     out = jax.device_get(evaluate_fn(state, eval_keys))
     secs = time.perf_counter() - t
     returns = np.asarray(out["returns"])  # [S, episodes]

@@ -36,7 +36,7 @@ import jax
 import numpy as np
 
 import envs
-from mjx_collo import config, plan_quality
+from mjx_collo import config, parallel, plan_quality
 from mjx_collo import trainer as trainer_lib
 from mjx_collo.plan_quality import contexts, load_params
 
@@ -171,7 +171,7 @@ def env_section(name: str, method: str, overrides: list[str], params, episodes: 
     cfg = load_cfg(method, overrides, episodes)
     env = envs.from_config(cfg.env)
     trainer = trainer_lib.make_train(cfg, env)
-    _, hyper, _ = trainer_lib.sweep_grid({}, 1)
+    _, hyper, _ = parallel.sweep_grid({}, 1)
     hyper = jax.tree.map(lambda x: x[0], hyper)
     state = jax.jit(trainer.init)(jax.random.PRNGKey(0), hyper).replace(wm=params)
     key = jax.random.PRNGKey(1)

@@ -127,3 +127,45 @@ def matmul_peak() -> float:
         jax.block_until_ready(f(a))
         best = min(best, time.perf_counter() - t0)
     return 2 * 1024**3 / best / 1e9
+
+
+def matmul_budget(trainer, costs: dict[str, FlopCount]) -> dict[str, float]:
+    """GFLOP of matmul work by schedule, from :attr:`Trainer.costs`: one planning call per env,
+    one update, a steady chunk (after the prefill), one evaluation, and the whole run.
+
+    Acting steps between planning calls (posterior filter, cached action) are not counted: next
+    to a planning call they are negligible (for the Dreamer actor every step is counted).
+    """
+    run = trainer.cfg.run
+    act, upd = costs["act"].gflops, costs["update"].gflops
+    per_env = act / run.num_envs
+    calls_per_chunk = trainer.iterations_per_chunk / trainer.plan_every
+    updates_per_chunk = run.chunk_env_steps / run.train_every * run.train_steps
+    chunk = calls_per_chunk * act + updates_per_chunk * upd
+    evaluation = trainer.episode_agent_steps / trainer.plan_every * run.eval_episodes * per_env
+    acting_steps = max(run.steps - run.prefill, 0)
+    calls = acting_steps / (trainer.env_steps_per_iteration * trainer.plan_every)
+    updates = run.pretrain + acting_steps / run.train_every * run.train_steps
+    evals = run.steps // run.eval_every
+    return {
+        "plan_call_gflop_per_env": per_env,
+        "update_gflop": upd,
+        "chunk_gflop": chunk,
+        "eval_gflop": evaluation,
+        "run_gflop": calls * act + updates * upd + evals * evaluation,
+        "run_planning_share": (calls * act + evals * evaluation)
+        / max(calls * act + updates * upd + evals * evaluation, 1e-9),
+    }
+
+
+def cost_summary(compiled) -> dict[str, float]:
+    """Memory of a compiled program (XLA memory analysis). Its FLOPs: :func:`matmul_budget`
+    (XLA's cost analysis counts each loop body once)."""
+    out: dict[str, float] = {}
+    try:
+        mem = compiled.memory_analysis()
+        out["temp_mib"] = mem.temp_size_in_bytes / 2**20
+        out["args_mib"] = mem.argument_size_in_bytes / 2**20
+    except Exception:  # noqa: BLE001
+        pass
+    return out

@@ -3,7 +3,7 @@
 XLA's CPU backend shows the whole host as a single device. Vmapped seeds then run as one stream of
 batched matmuls, and one seed's small planning matmuls keep only part of the cores busy.
 ``--xla_force_host_platform_device_count=N`` splits the host into N devices; the trainer shards
-the seed axis over them (``trainer.batched``: ``shard_map``, each device its own block of seeds,
+the seed axis over them (``parallel.batched``: ``shard_map``, each device its own block of seeds,
 one seed unbatched), and the seeds' programs run side by side on the cores.
 
 * One run gets two devices: it trains on the first, and its evaluations run on the second while

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -22,7 +23,9 @@ import numpy as np
 
 from mjx_collo import checkpoint as ckpt_lib
 from mjx_collo import config as config_lib
+from mjx_collo import flops as flops_lib
 from mjx_collo import metrics as metrics_lib
+from mjx_collo import parallel
 from mjx_collo import replay as replay_lib
 from mjx_collo import trainer as trainer_lib
 from mjx_collo.config import Config
@@ -66,6 +69,33 @@ def _labels_file(run_dir: Path, labels: list[dict]) -> None:
     (run_dir / "seeds.json").write_text(json.dumps(labels, indent=1))
 
 
+def record_host(run_dir: Path, env_steps: int) -> None:
+    """Append where this launch runs to ``host.json`` (one entry per launch: a resumed run may
+    move between machines); study reports show it beside each cell's cost. Written atomically;
+    an unreadable file is started afresh."""
+    path = Path(run_dir) / "host.json"
+    try:
+        entries = json.loads(path.read_text()) if path.exists() else []
+    except (OSError, json.JSONDecodeError):
+        entries = []
+    device = jax.devices()[0]
+    entries.append(
+        {
+            "launched": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "from_env_step": int(env_steps),
+            "host": socket.gethostname(),
+            "platform": device.platform,
+            "device_kind": device.device_kind,
+            "devices": jax.device_count(),
+            "processes": jax.process_count(),
+            "jax": jax.__version__,
+        }
+    )
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(entries, indent=1))
+    tmp.replace(path)
+
+
 class Run:
     """One (possibly resumed) run of ``cfg`` with ``num_seeds`` x sweep grid vmapped."""
 
@@ -82,13 +112,13 @@ class Run:
         self.cfg, self.env, self.log = cfg, env, log
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.num_runs, self.hyper, self.labels = trainer_lib.sweep_grid(sweep or {}, num_seeds)
+        self.num_runs, self.hyper, self.labels = parallel.sweep_grid(sweep or {}, num_seeds)
         self.trainer = trainer_lib.make_train(cfg, env)
         self.budget: dict[str, float] | None = None  # matmul work by schedule (compile())
-        self.sharding = trainer_lib.mesh_sharding(self.num_runs)
-        self.init_fn, self.chunk_fn, self.eval_fn = trainer_lib.batched(self.trainer, self.sharding)
+        self.sharding = parallel.mesh_sharding(self.num_runs)
+        self.init_fn, self.chunk_fn, self.eval_fn = parallel.batched(self.trainer, self.sharding)
         self.ckpt = ckpt_lib.Checkpointer(self.dir / "checkpoints", keep=cfg.run.keep_checkpoints)
-        self.keys = self._put(trainer_lib.seed_keys(cfg, self.num_runs))
+        self.keys = self._put(parallel.seed_keys(cfg, self.num_runs))
         self.hyper = self._put(self.hyper)
         self.main = is_main_process()
         self.progress = progress and self.main
@@ -128,7 +158,7 @@ class Run:
     def _it(self, it: int) -> Any:
         if self.sharding is None:
             return jnp.int32(it)
-        rep = trainer_lib.replicated(self.sharding)
+        rep = parallel.replicated(self.sharding)
         return jax.make_array_from_callback((), rep, lambda idx: np.int32(it))
 
     # ---- state -----------------------------------------------------------------------------
@@ -215,8 +245,8 @@ class Run:
             costs = pool.submit(self.trainer.costs, one)
             compiled = lowered.compile()
             secs = time.perf_counter() - t
-            self.budget = trainer_lib.matmul_budget(self.trainer, costs.result())
-        cost = trainer_lib.cost_summary(compiled)
+            self.budget = flops_lib.matmul_budget(self.trainer, costs.result())
+        cost = flops_lib.cost_summary(compiled)
         self.log(
             f"compiled chunk ({self.trainer.iterations_per_chunk} iterations x "
             f"{self.trainer.env_steps_per_iteration} env steps, {self.num_runs} run(s)) in "
@@ -303,6 +333,8 @@ class Run:
         (state, it), init_s, (compiled, compile_s) = self._start_and_compile()
         per_iter = self.trainer.env_steps_per_iteration
         env_steps = it * per_iter
+        if self.main:
+            record_host(self.dir, env_steps)
         result = RunResult(self.dir, env_steps, init_s=init_s, compile_s=compile_s)
         log = metrics_lib.RunLog(
             self.dir,

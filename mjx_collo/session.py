@@ -83,11 +83,11 @@ def restore_state(ckpt, step: int, cfg: Config, env: Any, replay: bool = False):
     import jax
     import numpy as np
 
-    from mjx_collo import trainer
+    from mjx_collo import parallel, trainer
 
     meta = ckpt.meta(step)
     n = meta["num_runs"]
-    keys = trainer.seed_keys(cfg, n)
+    keys = parallel.seed_keys(cfg, n)
     # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
     hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
     init = trainer.make_train(cfg, env).init

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs
-from mjx_collo import config, trainer
+from mjx_collo import config, parallel, trainer
 
 
 def main() -> None:
@@ -20,10 +20,10 @@ def main() -> None:
     cfg = config.load(task="reacher_easy", presets=["debug"])
     env = envs.from_config(cfg.env)
     tr = trainer.make_train(cfg, env)
-    keys = trainer.seed_keys(cfg, 2)
+    keys = parallel.seed_keys(cfg, 2)
     out = {}
-    for name, sharding in (("unsharded", None), ("sharded", trainer.mesh_sharding(2))):
-        init, chunk, _ = trainer.batched(tr, sharding)
+    for name, sharding in (("unsharded", None), ("sharded", parallel.mesh_sharding(2))):
+        init, chunk, _ = parallel.batched(tr, sharding)
         state = init(keys, {})
         state, metrics = chunk(state, jnp.int32(0))
         if sharding is not None:

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 import envs
-from mjx_collo import config, metrics, runner, trainer
+from mjx_collo import config, metrics, parallel, runner, trainer
+from mjx_collo import flops as flops_lib
 
 TASK = "reacher_easy"
 
@@ -142,8 +143,8 @@ def test_chunk_traces_once_across_calls():
         traces.append(1)
         return tr.chunk(s, it)
 
-    init, chunk_fn, _ = trainer.batched(tr._replace(chunk=chunk))
-    s = init(trainer.seed_keys(cfg, 2), {})
+    init, chunk_fn, _ = parallel.batched(tr._replace(chunk=chunk))
+    s = init(parallel.seed_keys(cfg, 2), {})
     for c in range(2):
         s, m = chunk_fn(s, jnp.asarray(c * tr.iterations_per_chunk, jnp.int32))
     assert len(traces) == 1
@@ -283,7 +284,7 @@ def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
     def f(w, x, scale):
         return {"y": jnp.tanh(x @ w) * scale, "n": jnp.sum(w)}
 
-    g = trainer.over_seeds(f, (0, 0, None))
+    g = parallel.over_seeds(f, (0, 0, None))
     key_w, key_x = jax.random.split(jax.random.PRNGKey(0))
     for seeds in (1, 3):
         w = jax.random.normal(key_w, (seeds, 8, 4))
@@ -319,7 +320,7 @@ def test_matmul_budget_follows_the_schedule_and_the_planner_settings():
 
     cfg, tr, c = costs()
     run = cfg.run
-    b = trainer.matmul_budget(tr, c)
+    b = flops_lib.matmul_budget(tr, c)
     assert c["act"].flops > 0 and c["update"].flops > 0
     calls = tr.iterations_per_chunk / tr.plan_every
     updates = run.chunk_env_steps / run.train_every * run.train_steps
