@@ -20,6 +20,7 @@ RUNS    ?=
 OUT     ?=
 EPISODES ?= 10
 VIDEO   ?= 0
+STUDY   ?= smoke
 PYTEST_ARGS ?=
 # pytest-xdist workers: the suite is mostly single-threaded XLA compiles, so 2 workers on 2 cores
 # cut a cold `make test` from ~14.9 to ~10.6 min.
@@ -28,7 +29,7 @@ TEST_WORKERS ?= 2
 # Quiet noisy deprecation chatter from dependencies.
 export PYTHONWARNINGS ?= ignore::DeprecationWarning
 
-.PHONY: install train sweep eval combine test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
+.PHONY: install train sweep eval combine study report test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
 
 install: $(STAMP)
 
@@ -53,6 +54,14 @@ eval: install
 # Seeds trained in separate runs as one curve + summary.json: make combine RUNS="dir1 dir2" OUT=dir
 combine: install
 	$(PY) -m mjx_collo.combine $(RUNS) --out $(OUT) $(ARGS)
+
+# A study: the cells of configs/study/$(STUDY).yaml one after another (re-run to resume), then its
+# report. RUN= moves the run directories (default runs/study/$(STUDY)).
+study: install
+	$(PY) study.py run $(STUDY) $(if $(RUN),--root $(RUN)) $(ARGS)
+
+report: install
+	$(PY) study.py report $(STUDY) $(ARGS)
 
 # The CI suite: everything not marked slow (< 15 min on 2 cores).
 test: install

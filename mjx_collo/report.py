@@ -1,0 +1,317 @@
+"""Study reports: learning curves, a table at the named budgets with published anchors, an
+aggregate over tasks, and what each cell cost — as the field reports RL results.
+
+Statistics come from rliable (Agarwal et al., 2021), the field's reporting standard: percentile
+bootstrap confidence intervals over seeds per task, and over tasks the interquartile mean (IQM)
+with stratified bootstrap CIs and a performance profile. Scores are normalised by 1000, the
+maximum return of a dm_control task, to aggregate over tasks.
+
+The report reads the cells' small files (``results/study/<name>/<task>/<variant>/``): a partly
+finished study reports what exists and marks what is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mjx_collo import study as study_lib
+from mjx_collo.study import StudyConfig
+
+MAX_RETURN = 1000.0  # dm_control rewards are in [0, 1] per env step, 1000 steps per episode
+REPS = 2000  # bootstrap resamples
+
+
+@dataclass
+class Series:
+    """One variant's runs of one task (a swept variant gives one series per swept value)."""
+
+    label: str
+    evals: dict[int, np.ndarray] = field(default_factory=dict)  # env step -> returns [seeds]
+    wall_s: float = float("nan")
+    env_steps: int = 0
+    sps_per_run: float = float("nan")
+    runs: int = 0
+    platforms: list[str] = field(default_factory=list)
+
+    def at(self, step: int) -> np.ndarray | None:
+        return self.evals.get(step)
+
+
+def _label(variant: study_lib.Variant, run_label: dict) -> str:
+    swept = {k: v for k, v in run_label.items() if k != "seed"}
+    if not swept:
+        return variant.display
+    return variant.display + " (" + ", ".join(f"{k}={v:g}" for k, v in swept.items()) + ")"
+
+
+def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
+    """The series of one cell from its small files (none when it has no metrics yet)."""
+    metrics = cell_dir / "metrics.jsonl"
+    if not metrics.exists():
+        return []
+    rows = []
+    for line in metrics.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:  # a torn last line of a run that was killed mid-write
+            continue
+    labels_file = cell_dir / "seeds.json"
+    n = 1 + max((r["seed"] for r in rows), default=-1)
+    labels = (
+        json.loads(labels_file.read_text())
+        if labels_file.exists()
+        else [{"seed": i} for i in range(n)]
+    )
+    names = [_label(variant, lab) for lab in labels]
+    host = cell_dir / "host.json"
+    platforms = (
+        sorted({h.get("platform", "?") for h in json.loads(host.read_text())})
+        if host.exists()
+        else []
+    )
+    out: dict[str, Series] = {}
+    for name in dict.fromkeys(names):
+        idx = [i for i, x in enumerate(names) if x == name]
+        s = Series(label=name, runs=len(idx), platforms=platforms)
+        by_step: dict[int, dict[int, float]] = {}
+        for r in rows:
+            if r["seed"] in idx and r["kind"] == "eval" and "eval/return" in r:
+                by_step.setdefault(r["step"], {})[r["seed"]] = r["eval/return"]
+        s.evals = {
+            k: np.array([v[i] for i in idx])
+            for k, v in sorted(by_step.items())
+            if len(v) == len(idx)
+        }
+        walls = [r["perf/wall_s"] for r in rows if "perf/wall_s" in r]
+        s.wall_s = max(walls) if walls else float("nan")
+        train = [r for r in rows if r["kind"] == "train" and r["seed"] == idx[0]]
+        s.env_steps = max((r["step"] for r in train), default=0)
+        sps = [r["perf/env_steps_per_s"] for r in train if "perf/env_steps_per_s" in r]
+        s.sps_per_run = float(np.median(sps)) if sps else float("nan")
+        out[name] = s
+    return list(out.values())
+
+
+def _k(steps: int) -> str:
+    """Env steps as the tables show them: 800, 25k, 100k."""
+    return f"{steps / 1000:g}k" if steps >= 1000 else str(steps)
+
+
+def _ci(scores: np.ndarray) -> tuple[float, float, float]:
+    """Mean over seeds and its 95% percentile-bootstrap CI (rliable)."""
+    from rliable import library as rly
+
+    x = np.asarray(scores, np.float64).reshape(-1, 1)
+    if x.shape[0] < 2:
+        m = float(x.mean())
+        return m, float("nan"), float("nan")
+    with warnings.catch_warnings():  # arch: "random_state is deprecated" (rliable passes it)
+        warnings.simplefilter("ignore", FutureWarning)
+        point, ci = rly.get_interval_estimates(
+            {"v": x},
+            lambda s: np.array([np.mean(s)]),
+            reps=REPS,
+            random_state=np.random.RandomState(0),
+        )
+    return float(point["v"][0]), float(ci["v"][0, 0]), float(ci["v"][1, 0])
+
+
+def _fmt(scores: np.ndarray | None) -> str:
+    if scores is None:
+        return "—"
+    m, lo, hi = _ci(scores)
+    if np.isnan(lo):
+        return f"{m:.0f} (n=1)"
+    return f"{m:.0f} [{lo:.0f}, {hi:.0f}]"
+
+
+def _budget_of(cfg: StudyConfig, task: str, budget: int | str) -> int | None:
+    return cfg.paper_budgets.get(task) if budget == "paper" else int(budget)
+
+
+def _plot_curves(task: str, series: list[Series], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for s in series:
+        if not s.evals:
+            continue
+        steps = np.array(sorted(s.evals))
+        stats = np.array([_ci(s.evals[k]) for k in steps])
+        (line,) = ax.plot(
+            steps / 1000, stats[:, 0], marker="o", ms=3, label=f"{s.label} (n={s.runs})"
+        )
+        if s.runs > 1:
+            ax.fill_between(
+                steps / 1000, stats[:, 1], stats[:, 2], color=line.get_color(), alpha=0.2
+            )
+    ax.set_xlabel("env steps (thousands)")
+    ax.set_ylabel("eval return")
+    ax.set_title(f"{task}: mean and 95% bootstrap CI over seeds")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _aggregate(cfg: StudyConfig, data: dict, budget: int, out_dir: Path) -> list[str]:
+    """IQM with stratified bootstrap CIs and a performance profile over tasks, for the series
+    that have ``budget`` on every task with the same number of runs."""
+    from rliable import library as rly
+    from rliable import metrics
+
+    scores: dict[str, np.ndarray] = {}
+    labels = list(dict.fromkeys(s.label for t in cfg.tasks for s in data.get(t, [])))
+    for label in labels:
+        cols = []
+        for task in cfg.tasks:
+            s = next((x for x in data.get(task, []) if x.label == label), None)
+            cols.append(None if s is None else s.at(budget))
+        if any(c is None for c in cols) or len({len(c) for c in cols}) != 1:
+            continue
+        scores[label] = np.stack(cols, axis=1) / MAX_RETURN  # [runs, tasks]
+    lines = [f"### Aggregate over tasks at {_k(budget)} env steps", ""]
+    if not scores:
+        return lines + ["No variant has finished every task at this budget yet.", ""]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        point, ci = rly.get_interval_estimates(
+            scores,
+            lambda x: np.array([metrics.aggregate_iqm(x)]),
+            reps=REPS,
+            random_state=np.random.RandomState(0),
+        )
+    lines += ["| variant | IQM (normalised return) | 95% CI | runs x tasks |", "|---|---|---|---|"]
+    for label in scores:
+        lo, hi = ci[label][:, 0]
+        r, t = scores[label].shape
+        lines.append(f"| {label} | {point[label][0]:.3f} | [{lo:.3f}, {hi:.3f}] | {r} x {t} |")
+    taus = np.linspace(0.0, 1.0, 101)
+    profiles, profile_cis = rly.create_performance_profile(scores, taus, reps=REPS)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from rliable import plot_utils
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    plot_utils.plot_performance_profiles(
+        profiles,
+        taus,
+        performance_profile_cis=profile_cis,
+        ax=ax,
+        colors=dict(zip(scores, plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False)),
+        xlabel=r"normalised return $\tau$ (return / 1000)",
+    )
+    ax.legend(list(scores), fontsize=8)
+    fig.tight_layout()
+    name = f"profile_{_k(budget)}.png"
+    fig.savefig(out_dir / name, dpi=110)
+    plt.close(fig)
+    return lines + ["", f"![performance profile]({out_dir.name}/{name})", ""]
+
+
+def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
+    """Write ``out_md`` and its PNGs (in ``<out_md stem>/``) from the cells under ``results``."""
+    out_dir = out_md.parent / out_md.stem
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cells = study_lib.cells(cfg)
+    data: dict[str, list[Series]] = {}
+    missing = []
+    cost_rows = []
+    for cell in cells:
+        series = load_cell(Path(results) / cell.task / cell.variant.name, cell.variant)
+        data.setdefault(cell.task, []).extend(series)
+        reached = max((s.env_steps for s in series), default=0)
+        if reached < cell.steps:
+            missing.append(f"{cell.key}: {_k(reached)} of {_k(cell.steps)} env steps")
+        for s in series:
+            if s.env_steps:
+                cost_rows.append(
+                    f"| {cell.task} | {s.label} | {s.runs} | {_k(s.env_steps)} | "
+                    f"{s.wall_s / 60:.0f} | {s.sps_per_run:.1f} | {s.sps_per_run * s.runs:.1f} | "
+                    f"{', '.join(s.platforms) or '?'} |"
+                )
+    partial = bool(missing)
+    lines = [f"# Study: {name}" + (" (partial)" if partial else ""), ""]
+    if cfg.description:
+        lines += [cfg.description.strip(), ""]
+    lines += [
+        f"Made by `make study STUDY={name}` and `make report STUDY={name}` from the cells' "
+        f"metrics in `{results}`. {cfg.seeds} seeds per cell; eval return is the mean of the "
+        "run's deterministic evaluation episodes; brackets are 95% percentile-bootstrap CIs over "
+        "seeds (rliable).",
+        "",
+    ]
+    if partial:
+        lines += (
+            ["**Partial:** these cells have not finished:", ""] + [f"- {m}" for m in missing] + [""]
+        )
+
+    budgets: list[int | str] = list(cfg.budgets or [cfg.steps])
+    if cfg.paper_budgets:
+        budgets.append("paper")
+    for task in cfg.tasks:
+        series = data.get(task, [])
+        png = out_dir / f"{task}.png"
+        _plot_curves(task, series, png)
+        lines += [f"## {task}", "", f"![{task}]({out_dir.name}/{png.name})", ""]
+        heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
+        anchor_heads = [a.name for a in cfg.anchors]
+        lines += [
+            "| variant | " + " | ".join(heads + anchor_heads) + " |",
+            "|---" * (1 + len(heads) + len(anchor_heads)) + "|",
+        ]
+        for s in series:
+            row = [
+                _fmt(s.at(b)) if (b := _budget_of(cfg, task, x)) is not None else "—"
+                for x in budgets
+            ]
+            lines.append(
+                f"| {s.label} (n={s.runs}) | " + " | ".join(row + [""] * len(anchor_heads)) + " |"
+            )
+        for a in cfg.anchors:
+            if task in a.scores:
+                at = _budget_of(cfg, task, a.budget)
+                cells_ = ["" for _ in heads] + ["" for _ in anchor_heads]
+                cells_[len(heads) + cfg.anchors.index(a)] = f"{a.scores[task]:g}" + (
+                    f" at {_k(at)}" if at else ""
+                )
+                lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
+        lines.append("")
+        if "paper" in budgets:
+            lines += [f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps.", ""]
+
+    lines += ["## Aggregate", ""]
+    for b in cfg.budgets or [cfg.steps]:
+        lines += _aggregate(cfg, data, int(b), out_dir)
+    if cfg.anchors:
+        lines += (
+            ["## Anchors", ""] + [f"- *{a.name}*: {a.note}" for a in cfg.anchors if a.note] + [""]
+        )
+    lines += [
+        "## Cost",
+        "",
+        "Wall time from the cell's first launch to its last row (compiles and evaluations "
+        "included); env steps/s of a steady training chunk, per run and for all runs of the cell "
+        "together (they train in one program).",
+        "",
+        "| task | variant | runs | env steps | wall min | env steps/s per run | env steps/s all runs | ran on |",
+        "|---|---|---|---|---|---|---|---|",
+        *cost_rows,
+        "",
+    ]
+    if cfg.notes:
+        lines += ["## Notes", ""] + [f"- {n}" for n in cfg.notes] + [""]
+    out_md.parent.mkdir(parents=True, exist_ok=True)
+    out_md.write_text("\n".join(lines))
+    return out_md

@@ -1,0 +1,257 @@
+"""Studies: a grid of tasks x variants x seeds, each cell an ordinary run directory.
+
+A study config (``configs/study/<name>.yaml``) names the grid; ``make study STUDY=<name>`` trains
+its cells one after another (the seeds of a cell vmapped in one program, by ``train.py``), and
+``make report STUDY=<name>`` (:mod:`mjx_collo.report`) turns the cells' metrics into a report.
+
+Re-running a study resumes its unfinished cell and skips the finished ones: a cell is finished
+when its run directory holds a checkpoint at the cell's last env step. The resolved study config
+is stored in the study's root on its first run; a later run with a different config is refused,
+naming the keys that differ (a changed config would mix cells trained under two designs).
+
+After each cell, and before it starts, the cell's small files (``config.yaml``, ``metrics.jsonl``,
+``seeds.json``, ``host.json``) are copied to ``results/study/<name>/<task>/<variant>/``, the
+committed record the report reads.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from mjx_collo import config as config_lib
+
+ROOT = Path(__file__).resolve().parent.parent
+STUDY_DIR = ROOT / "configs" / "study"
+SMALL_FILES = ("config.yaml", "metrics.jsonl", "seeds.json", "host.json")
+
+
+class StudyError(ValueError):
+    """A study that cannot run as asked; the message names the problem and the fix."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Variant(_Strict):
+    """One method setting: a method plus optional presets, overrides and a float sweep."""
+
+    name: str = Field(description="directory-safe id, e.g. collodreamer")
+    label: str | None = Field(None, description="display name in the report (default: name)")
+    method: str
+    presets: list[str] = []
+    overrides: list[str] = []
+    sweep: str | None = Field(None, description='one-compile float sweep, "key=v1,v2"')
+    budget: Literal["steps", "paper"] = Field(
+        "steps", description="train for the study's steps, or the paper's per-task budget only"
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _safe(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", v):
+            raise ValueError(f"variant name {v!r} must be letters, digits, '_', '-' or '.'")
+        return v
+
+    @property
+    def display(self) -> str:
+        return self.label or self.name
+
+
+class Anchor(_Strict):
+    """Published scores shown beside ours: eval return per task at ``budget`` env steps."""
+
+    name: str
+    budget: int | Literal["paper"]
+    scores: dict[str, float]
+    note: str = ""
+
+
+class StudyConfig(_Strict):
+    description: str = ""
+    tasks: list[str]
+    variants: list[Variant]
+    seeds: int = Field(3, ge=1)
+    steps: int = Field(100_000, gt=0)
+    eval_every: int | None = Field(None, gt=0)
+    overrides: list[str] = Field([], description="dotted overrides for every cell")
+    budgets: list[int] = Field([], description="env steps read into the report's table")
+    paper_budgets: dict[str, int] = Field({}, description="the paper's budget per task")
+    anchors: list[Anchor] = []
+    notes: list[str] = Field([], description="footnotes printed under the report's table")
+
+
+class Cell(BaseModel):
+    """One (task, variant) of a study."""
+
+    model_config = ConfigDict(frozen=True)
+
+    task: str
+    variant: Variant
+    seeds: int
+    steps: int
+    overrides: list[str]
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}/{self.variant.name}"
+
+
+def load(name_or_path: str) -> tuple[str, StudyConfig]:
+    """(study name, validated config) of ``configs/study/<name>.yaml`` or a YAML path."""
+    path = Path(name_or_path)
+    if path.suffix not in (".yaml", ".yml"):
+        path = STUDY_DIR / f"{name_or_path}.yaml"
+    if not path.exists():
+        known = ", ".join(sorted(p.stem for p in STUDY_DIR.glob("*.yaml")))
+        raise StudyError(f"no study config {path}; studies in {STUDY_DIR}: {known}")
+    raw = yaml.safe_load(path.read_text()) or {}
+    try:
+        cfg = StudyConfig.model_validate(raw)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise StudyError(f"{path}: {where}: {err['msg']}") from None
+    _check(path, cfg)
+    return path.stem, cfg
+
+
+def _check(path: Path, cfg: StudyConfig) -> None:
+    """Everything that can be checked without training: tasks, methods, presets and overrides
+    resolve to valid run configs, and every paper-budget variant has a budget for every task."""
+    import envs
+
+    names = [v.name for v in cfg.variants]
+    if len(set(names)) != len(names):
+        raise StudyError(f"{path}: variant names must be unique, got {names}")
+    for task in cfg.tasks:
+        try:
+            envs.canonical(task)
+        except envs.UnknownTaskError as e:
+            raise StudyError(f"{path}: {e}") from None
+    for cell in cells(cfg):
+        try:
+            run_config(cell)
+        except config_lib.ConfigError as e:
+            raise StudyError(f"{path}: cell {cell.key}: {e}") from None
+
+
+def cells(cfg: StudyConfig) -> list[Cell]:
+    """The grid in run order: task by task, variants in the config's order."""
+    out = []
+    for task in cfg.tasks:
+        for v in cfg.variants:
+            if v.budget == "paper":
+                if task not in cfg.paper_budgets:
+                    raise StudyError(
+                        f"variant {v.name} trains at the paper's budget, but paper_budgets has "
+                        f"none for {task}: add paper_budgets.{task}"
+                    )
+                steps = cfg.paper_budgets[task]
+            else:
+                steps = cfg.steps
+            overrides = list(cfg.overrides)
+            if cfg.eval_every is not None:
+                overrides.append(f"run.eval_every={cfg.eval_every}")
+            overrides += v.overrides
+            out.append(
+                Cell(task=task, variant=v, seeds=cfg.seeds, steps=steps, overrides=overrides)
+            )
+    return out
+
+
+def run_config(cell: Cell) -> config_lib.Config:
+    """The run config a cell trains with (what ``train.py`` builds from :func:`train_args`)."""
+    overrides = cell.overrides + [f"run.steps={cell.steps}"]
+    return config_lib.load(
+        task=cell.task,
+        method=cell.variant.method,
+        presets=cell.variant.presets,
+        overrides=overrides,
+    )
+
+
+def cell_dir(root: Path, cell: Cell) -> Path:
+    return Path(root) / cell.task / cell.variant.name
+
+
+def train_args(cell: Cell, run_dir: Path) -> list[str]:
+    """``train.py`` arguments that train (or resume) the cell in ``run_dir``."""
+    args = ["--env", cell.task, "--method", cell.variant.method, "--seeds", str(cell.seeds)]
+    args += ["--steps", str(cell.steps), "--run", str(run_dir), "--no-progress"]
+    for p in cell.variant.presets:
+        args += ["--preset", p]
+    if cell.variant.sweep:
+        args += ["--sweep", cell.variant.sweep]
+    return args + list(cell.overrides)
+
+
+def checkpoint_steps(run_dir: Path) -> list[int]:
+    ckpt = Path(run_dir) / "checkpoints"
+    if not ckpt.is_dir():
+        return []
+    return sorted(int(p.name) for p in ckpt.iterdir() if p.name.isdigit())
+
+
+def is_finished(root: Path, cell: Cell) -> bool:
+    """A checkpoint at (or past) the cell's last env step exists."""
+    steps = checkpoint_steps(cell_dir(root, cell))
+    return bool(steps) and steps[-1] >= cell.steps
+
+
+def status(root: Path, cfg: StudyConfig) -> dict[str, str]:
+    """Per cell key: ``finished``, ``partial (<step> env steps)`` or ``not started``."""
+    out = {}
+    for cell in cells(cfg):
+        steps = checkpoint_steps(cell_dir(root, cell))
+        if steps and steps[-1] >= cell.steps:
+            out[cell.key] = "finished"
+        elif steps:
+            out[cell.key] = f"partial ({steps[-1]} env steps)"
+        else:
+            out[cell.key] = "not started"
+    return out
+
+
+def pin_config(root: Path, cfg: StudyConfig) -> None:
+    """Store the study config in ``root`` on first use; refuse a different one later."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    pinned = root / "study.yaml"
+    mine = cfg.model_dump(mode="json")
+    if not pinned.exists():
+        pinned.write_text(yaml.safe_dump(mine, sort_keys=False))
+        return
+    theirs = yaml.safe_load(pinned.read_text())
+    if theirs == mine:
+        return
+    a, b = config_lib.flatten(theirs), config_lib.flatten(mine)
+    diffs = [
+        f"{k}: {a.get(k)!r} -> {b.get(k)!r}"
+        for k in sorted(set(a) | set(b))
+        if a.get(k) != b.get(k)
+    ]
+    shown = "; ".join(diffs[:6]) + (f"; ... ({len(diffs)} in all)" if len(diffs) > 6 else "")
+    raise StudyError(
+        f"the study in {root} was started with a different config ({shown}); finish it with its "
+        f"own config ({pinned}), or give the changed study another RUN= directory"
+    )
+
+
+def collect(root: Path, cell: Cell, results: Path) -> Path | None:
+    """Copy the cell's small files to ``results/<task>/<variant>/``; None if it has none yet."""
+    src = cell_dir(root, cell)
+    files = [src / f for f in SMALL_FILES if (src / f).exists()]
+    if not files:
+        return None
+    dst = Path(results) / cell.task / cell.variant.name
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in files:
+        shutil.copy2(f, dst / f.name)
+    return dst

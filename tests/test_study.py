@@ -1,0 +1,153 @@
+"""Studies: the config is checked before anything trains, a changed study is refused, and the
+smoke study (2 variants x 1 task x 2 seeds) runs, resumes without retraining finished cells, and
+reports."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mjx_collo import report, study
+
+ROOT = Path(__file__).resolve().parent.parent
+SMOKE = ROOT / "configs" / "study" / "smoke.yaml"
+
+
+def _study_yaml(tmp_path: Path, **changes) -> Path:
+    raw = yaml.safe_load(SMOKE.read_text())
+    raw.update(changes)
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"tasks": ["cheeta"]}, "unknown task 'cheeta'"),
+        ({"variants": [{"name": "x", "method": "colodreamer"}]}, "colodreamer"),
+        ({"overrides": ["wm.detr=3"]}, "wm.detr"),
+        ({"variants": [{"name": "a b", "method": "latco"}]}, "variant name"),
+        ({"variants": [{"name": "p", "method": "latco", "budget": "paper"}]}, "paper_budgets"),
+        ({"seeds": 0}, "seeds"),
+    ],
+)
+def test_bad_study_config_fails_with_one_line_before_training(tmp_path, changes, message):
+    with pytest.raises(study.StudyError, match=message) as e:
+        study.load(str(_study_yaml(tmp_path, **changes)))
+    assert "\n" not in str(e.value)
+
+
+def test_every_committed_study_config_resolves():
+    for path in sorted((ROOT / "configs" / "study").glob("*.yaml")):
+        _, cfg = study.load(str(path))
+        assert study.cells(cfg)
+
+
+def test_a_study_started_with_another_config_is_refused_naming_the_keys(tmp_path):
+    _, cfg = study.load(str(SMOKE))
+    study.pin_config(tmp_path, cfg)
+    study.pin_config(tmp_path, cfg)  # the same config resumes
+    changed = cfg.model_copy(update={"seeds": 3, "steps": 1200})
+    with pytest.raises(study.StudyError, match=r"seeds: 2 -> 3; steps: 800 -> 1200"):
+        study.pin_config(tmp_path, changed)
+
+
+def test_comparison_study_is_the_issue_grid():
+    _, cfg = study.load("comparison")
+    keys = [c.key for c in study.cells(cfg)]
+    assert len(keys) == 15 and cfg.seeds == 3 and cfg.steps == 100_000
+    paper = [c for c in study.cells(cfg) if c.variant.name == "paper"]
+    assert {c.task: c.steps for c in paper} == {
+        "cheetah_run": 25_000,
+        "quadruped_walk": 30_000,
+        "reacher_easy": 25_000,
+    }
+    run_cfg = study.run_config(paper[0])
+    assert run_cfg.wm.deter == 300 and run_cfg.value.mode == "plan_inner"
+    assert run_cfg.planner.value_lambda == 1.0 and run_cfg.value.clip
+    assert run_cfg.value.norm == "batch" and run_cfg.value.dropout > 0
+
+
+def _study(args: list[str], tmp: Path) -> subprocess.CompletedProcess:
+    # One XLA device, as the in-process tests: the cells' programs are then those of
+    # test_methods.py (same configs), which the persistent compile cache shares.
+    env = {
+        **os.environ,
+        "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla"),
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=1",
+    }
+    cmd = [sys.executable, str(ROOT / "study.py"), *args, str(SMOKE)]
+    cmd += ["--root", str(tmp / "runs"), "--results", str(tmp / "results")]
+    cmd += ["--out", str(tmp / "report" / "smoke.md")]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env, timeout=900)
+
+
+def test_smoke_study_runs_resumes_without_retraining_and_reports(tmp_path):
+    # Stopped after its first cell, as an interrupted study is left.
+    first = _study(["run", "--max-cells", "1", "--no-report"], tmp_path)
+    assert first.returncode == 0, first.stdout + first.stderr
+    cell1 = tmp_path / "runs" / "reacher_easy" / "collodreamer"
+    assert study.checkpoint_steps(cell1)[-1] == 800
+    assert not (tmp_path / "runs" / "reacher_easy" / "dreamer").exists()
+    metrics1 = (cell1 / "metrics.jsonl").read_text()
+
+    # Re-run: the finished cell is skipped, the other trains, the report is written.
+    second = _study(["run"], tmp_path)
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert "reacher_easy/collodreamer: finished, skipped" in second.stdout
+    assert (cell1 / "metrics.jsonl").read_text() == metrics1  # not retrained
+    assert study.checkpoint_steps(tmp_path / "runs" / "reacher_easy" / "dreamer")[-1] == 800
+    for variant in ("collodreamer", "dreamer"):
+        small = tmp_path / "results" / "reacher_easy" / variant
+        assert {p.name for p in small.iterdir()} >= {"config.yaml", "metrics.jsonl", "host.json"}
+
+    md = (tmp_path / "report" / "smoke.md").read_text()
+    assert "(partial)" not in md
+    assert "![reacher_easy](smoke/reacher_easy.png)" in md
+    assert (tmp_path / "report" / "smoke" / "reacher_easy.png").stat().st_size > 1000
+    assert (tmp_path / "report" / "smoke" / "profile_800.png").stat().st_size > 1000 and "IQM" in md
+    assert "| collodreamer (n=2) |" in md and "| dreamer (n=2) |" in md
+    assert "*random policy*" in md and "cpu" in md
+
+    # A third run trains nothing.
+    third = _study(["run", "--no-report"], tmp_path)
+    assert third.returncode == 0 and third.stdout.count("finished, skipped") == 2
+
+
+def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
+    """One cell with two evaluations and the other missing: the report shows the first with
+    bootstrap CIs and lists the missing cell; it does not fail."""
+    _, cfg = study.load(str(SMOKE))
+    cell = tmp_path / "results" / "reacher_easy" / "collodreamer"
+    cell.mkdir(parents=True)
+    rows = []
+    for step, returns in ((400, (10.0, 30.0)), (800, (50.0, 70.0))):
+        for seed, r in enumerate(returns):
+            rows.append(
+                {
+                    "step": step,
+                    "seed": seed,
+                    "kind": "train",
+                    "perf/wall_s": step / 10,
+                    "perf/env_steps_per_s": 40.0,
+                }
+            )
+            rows.append({"step": step, "seed": seed, "kind": "eval", "eval/return": r})
+    (cell / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + '\n{"step": 9')
+    (cell / "host.json").write_text(json.dumps([{"platform": "cpu"}]))
+    out = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md")
+    md = out.read_text()
+    assert md.startswith("# Study: smoke (partial)")
+    assert "- reacher_easy/dreamer: 0 of 800 env steps" in md
+    line = next(x for x in md.splitlines() if x.startswith("| collodreamer (n=2) |"))
+    mean, lo, hi = 60.0, 50.0, 70.0
+    assert f"{mean:.0f} [{lo:.0f}, {hi:.0f}]" in line
+    assert np.isclose(report._ci(np.array([50.0, 70.0]))[0], 60.0)
