@@ -28,7 +28,7 @@ def _read_run(run_dir: Path) -> tuple[list[dict], dict]:
     path = run_dir / "metrics.jsonl"
     if not path.exists():
         raise SystemExit(f"{run_dir}: no metrics.jsonl (is this a run directory of train.py?)")
-    rows = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+    rows, _ = metrics_lib.read_rows(path)
     cfg_path = run_dir / "config.yaml"
     cfg = yaml.safe_load(cfg_path.read_text()) if cfg_path.exists() else {}
     return rows, config_lib.flatten(cfg or {})

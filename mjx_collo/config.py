@@ -44,28 +44,32 @@ class EnvConfig(Section):
     physics: Literal["tuned", "dmc"]
 
 
+Positive = Annotated[int, Field(gt=0)]
+NonNegative = Annotated[int, Field(ge=0)]
+
+
 class RunConfig(Section):
-    steps: int
-    num_envs: int
-    prefill: int
-    train_every: int
-    train_steps: int
-    pretrain: int
-    eval_every: int
-    eval_episodes: int
-    chunk_env_steps: int
-    checkpoint_every: int
-    keep_checkpoints: int
+    steps: Positive
+    num_envs: Positive
+    prefill: NonNegative
+    train_every: Positive
+    train_steps: NonNegative
+    pretrain: NonNegative
+    eval_every: Positive
+    eval_episodes: Positive
+    chunk_env_steps: Positive
+    checkpoint_every: Positive
+    keep_checkpoints: Positive
     save_replay: bool
-    max_nonfinite: int
+    max_nonfinite: Positive
     seed: int
     eval_overlap: bool
 
 
 class ReplayConfig(Section):
-    capacity: int
-    batch: int
-    length: int
+    capacity: Positive
+    batch: Positive
+    length: Positive
 
 
 class OptimConfig(Section):

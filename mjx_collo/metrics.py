@@ -34,6 +34,25 @@ def _finite(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
+def read_rows(path: str | Path) -> tuple[list[dict], str | None]:
+    """The rows of a ``metrics.jsonl`` and its cut-off last line, if any (what a kill mid-write
+    leaves: rows are appended one line at a time, so only the last can be torn). A bad line
+    anywhere else is damage, not a torn write: ValueError naming the file and line."""
+    lines = Path(path).read_text().splitlines()
+    rows = []
+    for i, line in enumerate(lines):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            if i == len(lines) - 1:
+                return rows, line
+            raise ValueError(
+                f"{path}: line {i + 1} is not a JSON row (only the last line can be cut off by a "
+                "crash); repair or remove it"
+            ) from None
+    return rows, None
+
+
 class RunLog:
     """Writes ``metrics.jsonl``, ``tb/seed<i>/`` events and ``plots/*.png`` under ``run_dir``."""
 
@@ -71,12 +90,14 @@ class RunLog:
         (self.dir / "plots").mkdir(exist_ok=True)
         self.path = self.dir / "metrics.jsonl"
         self.rows: list[dict] = []
+        self.torn: str | None = None  # a cut-off last row dropped on resume (reported by the run)
         if self.path.exists():  # resume: keep history (drop rows past the resume point)
-            for line in self.path.read_text().splitlines():
-                row = json.loads(line)
-                if row.get("step", 0) <= start_step:
-                    self.rows.append(row)
-            self.path.write_text("".join(json.dumps(r) + "\n" for r in self.rows))
+            self.rows, self.torn = read_rows(self.path)
+            self.rows = [r for r in self.rows if r.get("step", 0) <= start_step]
+            # rewritten whole, atomically: a crash here leaves the old file, never half of it
+            tmp = self.path.with_suffix(".jsonl.tmp")
+            tmp.write_text("".join(json.dumps(r) + "\n" for r in self.rows))
+            tmp.replace(self.path)
         self.file = open(self.path, "a")
         self.num_seeds = num_seeds
         self.tb = None

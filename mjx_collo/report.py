@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mjx_collo import metrics as metrics_lib
 from mjx_collo import study as study_lib
 from mjx_collo.study import StudyConfig
 
@@ -54,12 +55,7 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
     metrics = cell_dir / "metrics.jsonl"
     if not metrics.exists():
         return []
-    rows = []
-    for line in metrics.read_text().splitlines():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:  # a torn last line of a run that was killed mid-write
-            continue
+    rows, _ = metrics_lib.read_rows(metrics)  # a cut-off last row (a killed run) is left out
     labels_file = cell_dir / "seeds.json"
     n = 1 + max((r["seed"] for r in rows), default=-1)
     labels = (

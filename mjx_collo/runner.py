@@ -344,6 +344,11 @@ class Run:
             progress=self.progress,
             enabled=self.main,  # one writer in a multi-process run
         )
+        if getattr(log, "torn", None):
+            self.log(
+                f"metrics.jsonl ended in a cut-off row (a crash mid-write), dropped: "
+                f"{log.torn[:80]!r}"
+            )
         # Wall time since the run's first launch: a resumed run continues from its last row's.
         wall0 = max((r.get("perf/wall_s", 0.0) for r in getattr(log, "rows", [])), default=0.0)
         wall = lambda: np.full(self.num_runs, wall0 + time.perf_counter() - launch)  # noqa: E731
