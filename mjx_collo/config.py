@@ -133,7 +133,7 @@ class ValueConfig(Section):
     residual_scale: float | Literal["auto"]
     clip: bool
     clip_range: tuple[float, float]
-    dropout: float
+    dropout: Annotated[float, Field(ge=0.0, lt=1.0)]
     norm: Literal["none", "layer", "batch"]
     optim: OptimConfig
 

@@ -40,18 +40,36 @@ class MLP(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array, train: bool = False) -> jax.Array:
         act = ACTIVATIONS[self.act]
-        for _ in range(self.layers):
+        for i in range(self.layers):
             x = nn.Dense(self.units)(x)
             if self.norm == "layer":
                 x = nn.LayerNorm()(x)
             elif self.norm == "batch":
                 x = nn.BatchNorm(use_running_average=not train)(x)
             x = act(x)
-            if self.dropout > 0.0:
-                x = nn.Dropout(self.dropout, deterministic=not train)(x)
+            # A literal 0.0 adds no layer; a traced rate (a swept value.dropout) always does.
+            if not (isinstance(self.dropout, int | float) and self.dropout == 0.0):
+                x = SweepableDropout(self.dropout, deterministic=not train, name=f"Dropout_{i}")(x)
         if self.out is not None:
             x = nn.Dense(self.out)(x)
         return x
+
+
+class SweepableDropout(nn.Dropout):
+    """``nn.Dropout`` whose rate may be a JAX tracer (a swept hyperparameter): the same mask and
+    scaling, without flax's Python checks of the rate (``rate == 0.0``), which a tracer cannot
+    answer. Named like flax's own dropout layers, so it draws the same masks. Rates must be < 1
+    (the config checks it)."""
+
+    @nn.compact
+    def __call__(self, inputs: jax.Array, deterministic: bool | None = None) -> jax.Array:
+        deterministic = nn.merge_param("deterministic", self.deterministic, deterministic)
+        if deterministic:
+            return inputs
+        keep_prob = 1.0 - self.rate
+        rng = self.make_rng(self.rng_collection)
+        mask = jax.random.bernoulli(rng, p=keep_prob, shape=inputs.shape)
+        return jax.lax.select(mask, inputs / keep_prob, jnp.zeros_like(inputs))
 
 
 class Linear(nn.Module):

@@ -184,3 +184,38 @@ def test_swept_floats_may_be_traced():
         return V.train_step(cfg, state, batch, jax.random.PRNGKey(1))[1]["value/target"]
 
     assert float(run(0.5, 1e-3)) != pytest.approx(float(run(0.9, 1e-3)))
+
+
+def test_dropout_is_sweepable_and_draws_flax_masks():
+    """``value.dropout`` is a float key, so a sweep passes it as a tracer: the value network must
+    trace with it (before: TracerBoolConversionError in ``if self.dropout > 0.0``), and a literal
+    rate must give exactly flax's own dropout masks (same layer names, same RNG streams)."""
+    import flax.linen as nn
+
+    from mjx_collo import nets
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (32, 8))
+    net = nets.MLP(2, 16, out=1, dropout=0.25)
+    params = net.init(jax.random.PRNGKey(1), x)
+    rngs = {"dropout": jax.random.PRNGKey(2)}
+    ours = net.apply(params, x, train=True, rngs=rngs)
+
+    class FlaxMLP(nn.Module):  # the layer stack with flax's nn.Dropout, for reference
+        @nn.compact
+        def __call__(self, x):
+            for _ in range(2):
+                x = nn.elu(nn.Dense(16)(x))
+                x = nn.Dropout(0.25, deterministic=False)(x)
+            return nn.Dense(1)(x)
+
+    np.testing.assert_array_equal(ours, FlaxMLP().apply(params, x, rngs=rngs))
+
+    def swept(rate):
+        return nets.MLP(2, 16, out=1, dropout=rate).apply(params, x, train=True, rngs=rngs)
+
+    out = jax.jit(jax.vmap(swept))(jnp.asarray([0.0, 0.25]))
+    np.testing.assert_allclose(out[1], ours, rtol=1e-6, atol=1e-6)
+    no_dropout = nets.MLP(2, 16, out=1).apply(params, x, train=True, rngs=rngs)
+    np.testing.assert_allclose(out[0], no_dropout, rtol=1e-6, atol=1e-6)
+    deterministic = nets.MLP(2, 16, out=1, dropout=0.25).apply(params, x, train=False)
+    np.testing.assert_allclose(deterministic, no_dropout, rtol=1e-6, atol=1e-6)
