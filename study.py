@@ -114,9 +114,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {path}")
         return 0
 
+    from mjx_collo import session
+
     try:
         study.pin_config(root, cfg)
-    except study.StudyError as e:
+        lock = session.lock_run_dir(root)  # noqa: F841 (one study process per root)
+    except (study.StudyError, session.RunLocked) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     stop = Stop()

@@ -100,14 +100,20 @@ def main(argv: list[str] | None = None) -> int:
             task, args.method, args.seeds, args.preset, args.sweep, args.overrides
         )
     )
+    import jax
+
+    if jax.process_index() == 0:  # one process of a distributed run holds the directory
+        try:
+            lock = session.lock_run_dir(run_dir)  # noqa: F841 (held until exit)
+        except session.RunLocked as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
     print(
         f"mjx_collo: {args.method} on {task}, {args.seeds} seed(s)"
         + (f" x sweep {sweep}" if sweep else "")
         + f", {cfg.run.steps} env steps -> {run_dir}"
     )
     if args.distributed:
-        import jax
-
         print(
             f"jax.distributed: process {jax.process_index()}/{jax.process_count()}, "
             f"{jax.device_count()} devices ({jax.local_device_count()} on this process)"
@@ -146,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{result.stopped} at {result.env_steps} env steps; results in {run_dir} "
         f"(metrics.jsonl, plots/, tb/, checkpoints/)"
     )
-    return 0
+    return session.exit_code(result.stopped)
 
 
 if __name__ == "__main__":

@@ -8,8 +8,11 @@ the library does not depend on the task suite.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
+import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +47,49 @@ def default_run_dir(
     if extra:
         parts.append(hashlib.sha1(extra.encode()).hexdigest()[:8])
     return Path("runs") / "-".join(parts)
+
+
+class RunLocked(RuntimeError):
+    """Another live process holds the run directory."""
+
+
+def lock_run_dir(run_dir: str | Path):
+    """Hold ``<run_dir>/.lock`` (an OS file lock, ``flock``) for this process's lifetime: a second
+    launch on the same directory fails at once, naming the holder, instead of interleaving its
+    metrics and checkpoints with the first. The OS drops the lock when its holder dies, however
+    it dies, so a lock left by a dead process is simply taken over. Returns the open lock file;
+    keep a reference to it."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    f = open(run_dir / ".lock", "a+")  # noqa: SIM115 (held until the process exits)
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise RunLocked(
+            f"{run_dir} is in use by {holder}: wait for that run to end (or stop it), or choose "
+            "another run directory (RUN=...)"
+        ) from None
+    f.seek(0)
+    f.truncate()
+    f.write(
+        f"pid {os.getpid()} on {socket.gethostname()} since {time.strftime('%Y-%m-%d %H:%M:%S')}"
+    )
+    f.flush()
+    return f
+
+
+def exit_code(stopped: str) -> int:
+    """The process exit status of a run that ``stopped`` as it did: 0 when it completed (or hit
+    its chunk limit), 128 + the signal number after SIGINT / SIGTERM (130 / 143), so a scheduler
+    can tell an interrupted run, to be requeued, from a finished one."""
+    import signal
+
+    if stopped in ("SIGINT", "SIGTERM"):
+        return 128 + int(signal.Signals[stopped])
+    return 0
 
 
 def count_runs(seeds: int, sweep: str | None) -> int:
