@@ -1,7 +1,7 @@
 """Evaluate a checkpoint: ``make eval CKPT=<run dir or checkpoint step dir> [EPISODES=10] [VIDEO=1]``.
 
 Deterministic episodes (no exploration noise) per seed with the saved parameters — the replay is
-not loaded. Prints a table of mean ± std return, writes ``eval.json`` (and with ``--video`` a GIF of
+not loaded. Prints a table of mean ± std return, writes ``eval_<step>.json`` (and with ``--video`` a GIF of
 one episode per seed, rendered on the CPU) next to the checkpoints.
 """
 
@@ -119,8 +119,10 @@ def main(argv=None) -> int:
             videos.append(str(path))
             print(f"video: {path}")
         result["videos"] = videos
-    (out_dir / "eval.json").write_text(json.dumps(result, indent=1))
-    print(f"wrote {out_dir / 'eval.json'}")
+    # one file per checkpoint step: evaluating another checkpoint does not overwrite this one
+    path = out_dir / f"eval_{step}.json"
+    path.write_text(json.dumps(result, indent=1))
+    print(f"wrote {path}")
     return 0
 
 

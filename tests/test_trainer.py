@@ -217,7 +217,7 @@ def test_checkpoint_from_another_config_fails_with_one_line(runs):
 def test_make_eval_with_another_planner_budget(runs, tmp_path):
     """`make eval` on the run directory with a planner override that changes the shape of the
     acting caches saved in the checkpoint (mpc_steps 2 -> 4): it restores, plans with the new
-    setting, and writes a per-seed table and eval.json that records the override."""
+    setting, and writes a per-seed table and eval_<step>.json that records the override."""
     cfg, (res_a, _), _ = runs
     proc = _cli(
         "evaluate.py",
@@ -226,7 +226,7 @@ def test_make_eval_with_another_planner_budget(runs, tmp_path):
     )
     out = proc.stdout
     assert proc.returncode == 0, (out, proc.stderr)
-    result = json.loads((tmp_path / "eval.json").read_text())
+    result = json.loads((tmp_path / "eval_800.json").read_text())  # named by the step
     assert result["overrides"] == ["planner.mpc_steps=4", "planner.iters=5"]
     assert result["env_steps"] == 800 and len(result["runs"]) == 2
     returns = np.array([r["returns"] for r in result["runs"]])
