@@ -424,6 +424,7 @@ class Run:
                     result.stopped = "max_chunks"
                     break
             collect(block=True)
+            log.plot()  # the last evaluation (logged just now when it overlapped the last chunk)
             if self._stop_signal is not None:
                 result.stopped = self._stop_signal
             if last_saved != env_steps:  # interrupted or stopped early: keep the work

@@ -123,7 +123,7 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
 def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_path):
     """One seed gets 2 CPU devices (host_devices): it trains on the first while its evaluations
     run on the second, overlapping the next chunk. The returns equal those of evaluating in line
-    (run.eval_overlap=false), and every evaluation is logged, the last one included."""
+    (run.eval_overlap=false), and every evaluation is logged and plotted, the last one included."""
     env = _env()
     env.pop("XLA_FLAGS", None)
     returns = {}
@@ -144,5 +144,9 @@ def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_pat
         assert overlapped == (name == "overlap"), proc.stdout[-2000:]
         rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
         returns[name] = {r["step"]: r["eval/return"] for r in rows if r["kind"] == "eval"}
+        # the curves were drawn after the last row (the final evaluation) was written: before,
+        # an evaluation that overlapped the last chunk was logged after the last plot
+        png = (run / "plots" / "returns.png").stat().st_mtime_ns
+        assert png >= (run / "metrics.jsonl").stat().st_mtime_ns, name
     assert sorted(returns["overlap"]) == [400, 800]
     assert returns["overlap"] == returns["inline"]
