@@ -38,14 +38,13 @@ def main(argv=None) -> int:
     import envs
     from mjx_collo import checkpoint, config, parallel, session, trainer
 
+    session.exit_on_signal("evaluating")
     session.setup_jax()
+    skipped = checkpoint.report_skips(lambda line: print(line, file=sys.stderr))
     try:
         ckpt = checkpoint.Checkpointer(args.ckpt, read_only=True)
-        step = ckpt.latest_step()
-        if step is None:
-            raise checkpoint.CheckpointError(f"no checkpoint found under {args.ckpt}")
-        meta = ckpt.meta(step)
-        cfg = ckpt.config(step)
+        _, meta = ckpt.newest_meta(on_skip=skipped)
+        cfg = ckpt.config_of(meta)
         cfg_run = session.eval_config(cfg, args.overrides)
     except (checkpoint.CheckpointError, FileNotFoundError, config.ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -60,7 +59,11 @@ def main(argv=None) -> int:
     tr = trainer.make_train(cfg_eval, env)
     labels = meta["labels"]
     n = meta["num_runs"]
-    state, keys = session.restore_state(ckpt, step, cfg, env)
+    try:
+        state, keys, step = session.restore_state(ckpt, cfg, env, meta, on_skip=skipped)
+    except checkpoint.CheckpointError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     t = time.perf_counter()
     eval_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, step), 7))(keys)
     evaluate_fn = parallel.batched(tr)[2]  # one seed runs unbatched (parallel.over_seeds)

@@ -68,6 +68,7 @@ def setup_distributed(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
+    session.exit_on_signal("starting up (before the first chunk)")
     if not args.distributed:  # a distributed run's devices are its processes' own
         host_devices.configure(session.count_runs(args.seeds, args.sweep))
     try:

@@ -47,14 +47,14 @@ def main(argv=None) -> int:
 
     session.setup_jax()
     ck = checkpoint.Checkpointer(args.ckpt, read_only=True)
-    step = ck.latest_step()
-    cfg0 = ck.config(step)
+    _, meta = ck.newest_meta()
+    cfg0 = ck.config_of(meta)
     if not cfg0.env.task.startswith("reacher"):
         print(f"error: {cfg0.env.task} is not a reacher task", file=sys.stderr)
         return 2
     cfg = session.eval_config(cfg0, args.overrides)
     env = envs.from_config(cfg.env)
-    state, _ = session.restore_state(ck, step, cfg0, env)
+    state, _, step = session.restore_state(ck, cfg0, env, meta)
     s = jax.tree.map(lambda x: x[args.seed], state)
     agent = agent_lib.make_agent(cfg, int(env.action_size))
     n, length = args.episodes, cfg.env.episode_env_steps // cfg.env.action_repeat

@@ -56,9 +56,8 @@ def main(argv=None) -> int:
 
     session.setup_jax()
     ck = checkpoint.Checkpointer(args.ckpt, read_only=True)
-    step = ck.latest_step()
-    cfg0 = ck.config(step)
-    meta = ck.meta(step)
+    _, meta = ck.newest_meta()
+    cfg0 = ck.config_of(meta)
     if not cfg0.value.enabled or cfg0.planner.kind == "dreamer":
         print("error: the checkpoint has no planner value (value.enabled)", file=sys.stderr)
         return 2
@@ -67,7 +66,7 @@ def main(argv=None) -> int:
         return 2
     cfg = session.eval_config(cfg0, args.overrides)
     env = envs.from_config(cfg0.env)
-    state, _ = session.restore_state(ck, step, cfg0, env, replay=True)
+    state, _, step = session.restore_state(ck, cfg0, env, meta, replay=True)
     s = jax.tree.map(lambda x: x[args.seed], state)
     rep = s.replay
     vc, wc, length = cfg0.value, cfg0.wm, cfg0.replay.length

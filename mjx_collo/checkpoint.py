@@ -13,7 +13,11 @@ leaves the previous checkpoint intact; non-finite states are refused before anyt
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import logging
+import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -161,6 +165,13 @@ class Checkpointer:
             return self.pinned_step
         return self.manager.latest_step()
 
+    def steps(self) -> list[int]:
+        """The checkpoint steps on disk, newest first (only the pinned one for a step directory)."""
+        if self.pinned_step is not None:
+            return [self.pinned_step]
+        self.manager.reload()  # steps written or removed since this manager opened
+        return sorted(self.manager.all_steps(), reverse=True)
+
     def meta(self, step: int | None = None) -> dict:
         step = self._resolve(step)
         out = self.manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
@@ -172,16 +183,27 @@ class Checkpointer:
             )
         return meta
 
+    def newest_meta(self, on_skip: SkipFn | None = None) -> tuple[int, dict]:
+        """The newest step whose metadata reads, and that metadata; steps whose metadata does not
+        read (an empty or half-written step directory) are skipped and passed to ``on_skip``.
+
+        Cheap (JSON only): what a resume checks its config against before compiling."""
+        meta, step = self._first_usable(self.meta, on_skip)
+        return step, meta
+
     def config(self, step: int | None = None) -> Config:
-        tree = self.meta(step)["config"]
+        return self.config_of(self.meta(step))
+
+    def config_of(self, meta: dict) -> Config:
         try:
-            return config_lib.build(config_lib.complete_saved(tree))
+            return config_lib.build(config_lib.complete_saved(meta["config"]))
         except ConfigError as e:
             raise CheckpointError(f"checkpoint config no longer validates: {e}") from None
 
-    def check_config(self, cfg: Config, step: int | None = None) -> None:
-        """Raise :class:`CheckpointError` naming what differs if ``cfg`` is not the saved one."""
-        saved = self.config(step)
+    def check_config(self, cfg: Config, meta: dict | None = None) -> None:
+        """Raise :class:`CheckpointError` naming what differs if ``cfg`` is not the saved one
+        (``meta``: a checkpoint's metadata, default the latest step's)."""
+        saved = self.config_of(meta if meta is not None else self.meta())
         diffs = [d for d in config_lib.diff(saved, cfg) if not d.startswith(RESUMABLE)]
         if diffs:
             shown = "; ".join(diffs[:8]) + (" ..." if len(diffs) > 8 else "")
@@ -191,27 +213,105 @@ class Checkpointer:
             )
 
     def restore(
-        self, abstract_train: Any, abstract_replay: Any | None = None, step: int | None = None
-    ) -> tuple[Any, Any | None, dict]:
+        self,
+        abstract_train: Any,
+        abstract_replay: Any | None = None,
+        step: int | None = None,
+        on_skip: SkipFn | None = None,
+    ) -> tuple[Any, Any | None, dict, int]:
         """Restore into the given abstract (``jax.eval_shape``) trees; replay only if asked and
-        saved. Returns (train, replay or None, meta)."""
-        step = self._resolve(step)
-        meta = self.meta(step)
+        saved. Returns (train, replay or None, meta, step).
+
+        ``step=None`` takes the newest step that restores and holds only finite numbers: a
+        damaged or partial newer step (a directory left empty, a file cut short, a metadata file
+        missing) is skipped, named to ``on_skip(step, reason)``, and left where it is. A given
+        ``step`` (or a step directory) is that step or an error."""
         abstract_train = _on_this_host(abstract_train)
         abstract_replay = _on_this_host(abstract_replay)
-        items = {"train": ocp.args.StandardRestore(_strip_empty(abstract_train))}
-        if abstract_replay is not None and meta.get("has_replay"):
-            items["replay"] = ocp.args.StandardRestore(_strip_empty(abstract_replay))
-        out = self.manager.restore(step, args=ocp.args.Composite(**items))
-        train = _fill_empty(abstract_train, out["train"])
-        replay = _fill_empty(abstract_replay, out["replay"]) if "replay" in items else None
-        return train, replay, meta
+
+        def load(s: int) -> tuple[Any, Any | None, dict]:
+            meta = self.meta(s)
+            items = {"train": ocp.args.StandardRestore(_strip_empty(abstract_train))}
+            if abstract_replay is not None and meta.get("has_replay"):
+                items["replay"] = ocp.args.StandardRestore(_strip_empty(abstract_replay))
+            out = self.manager.restore(s, args=ocp.args.Composite(**items))
+            train = _fill_empty(abstract_train, out["train"])
+            replay = _fill_empty(abstract_replay, out["replay"]) if "replay" in items else None
+            if not all_finite(train):
+                raise ValueError("the restored state holds NaN/inf")
+            return train, replay, meta
+
+        (train, replay, meta), s = self._first_usable(load, on_skip, [step] if step else None)
+        return train, replay, meta, s
+
+    def _first_usable(self, load, on_skip: SkipFn | None, steps: list[int] | None = None):
+        """``(load(step), step)`` for the newest step that loads; the others before it are
+        damaged: named to ``on_skip`` and, if none loads, in the error."""
+        steps = steps if steps is not None else self.steps()
+        if not steps:
+            raise CheckpointError(f"no checkpoint found in {self.directory}")
+        damaged = []
+        for s in steps:
+            try:
+                with _quiet_unraisable():
+                    return load(s), s
+            except CheckpointError:
+                raise
+            except Exception as e:  # noqa: BLE001 - whatever a damaged directory makes orbax raise
+                why = damage_reason(e)
+                damaged.append(f"{s} ({why})")
+                if on_skip is not None:
+                    on_skip(s, why)
+        raise CheckpointError(
+            f"no usable checkpoint in {self.directory}: "
+            + "; ".join(damaged)
+            + ". Each step is a directory: move a damaged one aside to see what is left."
+        )
 
     def _resolve(self, step: int | None) -> int:
         step = step if step is not None else self.latest_step()
         if step is None:
             raise CheckpointError(f"no checkpoint found in {self.directory}")
         return int(step)
+
+
+SkipFn = Callable[[int, str], None]
+
+
+@contextlib.contextmanager
+def _quiet_unraisable():
+    """While a step is read: a damaged array makes orbax's other read coroutines fail too, and
+    Python prints each as an "Exception ignored in" traceback; the one-line reason is enough."""
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda _unraisable: None
+    try:
+        yield
+    finally:
+        gc.collect()  # the failed coroutines are finalized now, while the hook is quiet
+        sys.unraisablehook = hook
+
+
+def report_skips(log: Callable[[str], None]) -> SkipFn:
+    """An ``on_skip`` that reports each damaged step once through ``log``."""
+    seen: set[int] = set()
+
+    def on_skip(step: int, why: str) -> None:
+        if step not in seen:
+            seen.add(step)
+            log(f"checkpoint step {step} skipped, damaged or partial: {why}")
+
+    return on_skip
+
+
+def damage_reason(e: BaseException) -> str:
+    """One short line for why a checkpoint step did not load."""
+    text = " ".join(str(e).split())
+    if isinstance(e, KeyError) and "Available items: []" in text:
+        return "the step directory holds nothing (an interrupted or partial save)"
+    if "error while reading array" in text:
+        return "an array file does not read (cut short or corrupt)"
+    text = text.split(" See full TensorStore details")[0]
+    return f"{type(e).__name__}: {text[:160]}" if text else type(e).__name__
 
 
 def host_tree(tree: Any) -> Any:

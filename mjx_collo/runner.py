@@ -66,7 +66,9 @@ class RunResult:
 
 
 def _labels_file(run_dir: Path, labels: list[dict]) -> None:
-    (run_dir / "seeds.json").write_text(json.dumps(labels, indent=1))
+    tmp = run_dir / "seeds.json.tmp"
+    tmp.write_text(json.dumps(labels, indent=1))
+    tmp.replace(run_dir / "seeds.json")
 
 
 def record_host(run_dir: Path, env_steps: int) -> None:
@@ -123,6 +125,7 @@ class Run:
         self.main = is_main_process()
         self.progress = progress and self.main
         self._stop_signal: str | None = None
+        self._damaged: set[int] = set()  # checkpoint steps that did not load
         self._eval_compiled = None
         self.eval_device = self._eval_device()
         self._eval_pool = (
@@ -166,10 +169,57 @@ class Run:
     def _abstract(self):
         return jax.eval_shape(self.init_fn, self.keys, self.hyper)
 
-    def start(self) -> tuple[trainer_lib.TrainState, int]:
-        """Fresh state, or the latest checkpoint's. Returns (state, iteration)."""
-        latest = self.ckpt.latest_step()
-        if latest is None:
+    def resume_point(self) -> tuple[int, dict] | None:
+        """The newest checkpoint whose metadata reads, checked against this command, or None
+        for a fresh run. JSON only: a changed config or seed count is refused here, in a second,
+        before anything compiles; damaged newer steps are named and skipped."""
+        if not self.ckpt.steps():
+            return None
+        step, meta = self.ckpt.newest_meta(on_skip=self._skipped)
+        self._check_meta(meta)
+        return step, meta
+
+    def _check_meta(self, meta: dict) -> None:
+        self.ckpt.check_config(self.cfg, meta)
+        if meta.get("num_runs") != self.num_runs or meta.get("labels") != self.labels:
+            raise ckpt_lib.CheckpointError(
+                f"checkpoint in {self.dir} holds {meta.get('num_runs')} seed/sweep runs "
+                f"{meta.get('labels')}, this command asks for {self.num_runs} {self.labels}"
+            )
+
+    def _skipped(self, step: int, why: str) -> None:
+        if step not in self._damaged:
+            self._damaged.add(step)
+            self.log(
+                f"checkpoint {self.dir / 'checkpoints' / str(step)} skipped, damaged or partial: "
+                f"{why}"
+            )
+
+    def _set_aside(self, restored: int) -> None:
+        """Move damaged steps newer than the restored one to ``checkpoints.damaged/`` (kept for
+        a look, never deleted): the resumed run saves those step numbers again."""
+        newer = [s for s in self._damaged if s > restored]
+        if not newer or not self.main:
+            return
+        aside = self.dir / "checkpoints.damaged"
+        aside.mkdir(exist_ok=True)
+        for s in sorted(newer):
+            target = aside / str(s)
+            n = 1
+            while target.exists():
+                target, n = aside / f"{s}.{n}", n + 1
+            (self.dir / "checkpoints" / str(s)).rename(target)
+            self.log(f"moved damaged checkpoint {s} to {target}")
+        self.ckpt.manager.reload()
+
+    def _start_ready(self, resume):
+        state, iteration = self.start(resume)
+        return jax.block_until_ready(state), iteration
+
+    def start(self, resume: tuple[int, dict] | None = None) -> tuple[trainer_lib.TrainState, int]:
+        """Fresh state, or the newest checkpoint's that restores (``resume``: from
+        :meth:`resume_point`). Returns (state, iteration)."""
+        if resume is None:
             if self.main:
                 config_lib.dump_yaml(self.cfg, self.dir / "config.yaml")
                 _labels_file(self.dir, self.labels)
@@ -178,20 +228,17 @@ class Run:
             jax.block_until_ready(state)
             self.log(f"initialised {self.num_runs} run(s) in {time.perf_counter() - t:.1f}s")
             return state, 0
-        self.ckpt.check_config(self.cfg)
-        meta = self.ckpt.meta()
-        if meta.get("num_runs") != self.num_runs or meta.get("labels") != self.labels:
-            raise ckpt_lib.CheckpointError(
-                f"checkpoint in {self.dir} holds {meta.get('num_runs')} seed/sweep runs "
-                f"{meta.get('labels')}, this command asks for {self.num_runs} {self.labels}"
-            )
         abstract = self._abstract()
         if self.sharding is not None:
             abstract = jax.tree.map(
                 lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding), abstract
             )
         train_abs = abstract.replace(replay=None)
-        train, replay, meta = self.ckpt.restore(train_abs, abstract.replay)
+        train, replay, meta, step = self.ckpt.restore(
+            train_abs, abstract.replay, on_skip=self._skipped
+        )
+        self._check_meta(meta)
+        self._set_aside(step)
         if replay is None:
             self.log(
                 "checkpoint has no replay (run.save_replay=false): resuming with an empty buffer"
@@ -199,7 +246,7 @@ class Run:
             replay = jax.jit(lambda s: s.replay)(self.init_fn(self.keys, self.hyper))
         state = train.replace(replay=replay)
         self.log(
-            f"resumed from {self.dir / 'checkpoints' / str(latest)} (env step {meta['env_steps']})"
+            f"resumed from {self.dir / 'checkpoints' / str(step)} (env step {meta['env_steps']})"
         )
         return state, int(meta["iteration"])
 
@@ -265,22 +312,26 @@ class Run:
     def _start_and_compile(self):
         """Build (or restore) the state and compile the chunk at the same time.
 
-        The chunk is lowered from the state's shapes alone (``jax.eval_shape`` of init), so its
-        compile needs nothing from the real state. Building the state jit-compiles and runs the
-        env resets (cheetah's 200 settling steps) and the agent's initial carry: 35-40 s on 2
-        cores that used to run before the chunk's 50-100 s compile. XLA compiles with the GIL
-        released, so the two overlap on a second core. Multi-process runs keep the serial order
-        (every process must issue its collectives in the same order)."""
+        Everything a resume can refuse (config, seed count) is checked first, from the
+        checkpoint's JSON. The chunk is lowered from the state's shapes alone (``jax.eval_shape``
+        of init), so its compile needs nothing from the real state. Building the state
+        jit-compiles and runs the env resets (cheetah's 200 settling steps) and the agent's
+        initial carry: 35-40 s on 2 cores that used to run before the chunk's 50-100 s compile.
+        XLA compiles with the GIL released, so the two overlap on a second core. Both run in
+        worker threads: the main thread only waits, so a signal reaches its handler at once
+        (``session.exit_on_signal``). Multi-process runs keep the serial order (every process must
+        issue its collectives in the same order)."""
         t0 = time.perf_counter()
+        resume = self.resume_point()
         if jax.process_count() > 1:
-            started = self.start()
+            started = self.start(resume)
             init_s = time.perf_counter() - t0
             return started, init_s, self.compile(started[0], started[1])
         abstract = self._abstract()
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="compile") as pool:
+        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="start") as pool:
             pending = pool.submit(self.compile, abstract, 0)
-            started = self.start()
-            jax.block_until_ready(started[0])
+            starting = pool.submit(self._start_ready, resume)
+            started = starting.result()
             init_s = time.perf_counter() - t0
             compiled = pending.result()
         return started, init_s, compiled
@@ -430,13 +481,13 @@ class Run:
             if last_saved != env_steps:  # interrupted or stopped early: keep the work
                 self.save(state, it, env_steps, wait=True)
         finally:
+            self.ckpt.wait()  # before the caller's handlers return: a save is never cut short
+            log.close()
             for s, h in handlers.items():
                 try:
                     signal.signal(s, h)
                 except ValueError:
                     pass
-            self.ckpt.wait()
-            log.close()
         result.env_steps = env_steps
         # where the run stopped, for callers that go on by hand (benchmarks/bench_train.py)
         self.state, self.iteration, self.chunk_program = state, it, compiled

@@ -81,6 +81,26 @@ def lock_run_dir(run_dir: str | Path):
     return f
 
 
+def exit_on_signal(doing: str) -> None:
+    """Until something installs its own handlers (the training loop does, to save first), SIGINT
+    and SIGTERM end the process at once with one line and status 130 / 143.
+
+    Installed first thing by the scripts, so Ctrl-C while importing, tracing or compiling stops
+    within a second instead of being lost (JAX's compile threads would keep a normal exit
+    waiting for minutes) or ending in a traceback. Nothing half-written is left: start-up writes
+    only small files, each atomically, and no checkpoint."""
+    import signal
+    import sys
+
+    def handler(signum, _frame):
+        name = signal.Signals(signum).name
+        print(f"{name} received while {doing}: stopped, nothing saved", file=sys.stderr, flush=True)
+        os._exit(128 + signum)
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, handler)
+
+
 def exit_code(stopped: str) -> int:
     """The process exit status of a run that ``stopped`` as it did: 0 when it completed (or hit
     its chunk limit), 128 + the signal number after SIGINT / SIGTERM (130 / 143), so a scheduler
@@ -119,26 +139,29 @@ def eval_config(cfg: Config, overrides: list[str]) -> Config:
     return new
 
 
-def restore_state(ckpt, step: int, cfg: Config, env: Any, replay: bool = False):
-    """The seed-stacked train state of checkpoint ``step`` and the seed keys; the replay only with
-    ``replay=True`` (the checkpoint must hold one), else ``state.replay`` is None.
+def restore_state(
+    ckpt, cfg: Config, env: Any, meta: dict, replay: bool = False, step=None, on_skip=None
+):
+    """The seed-stacked train state of the newest checkpoint that restores (or of ``step``), the
+    seed keys and the step restored; the replay only with ``replay=True`` (the checkpoint must
+    hold one), else ``state.replay`` is None. Damaged newer steps are passed to ``on_skip``.
 
-    cfg: the checkpoint's own config: the state's shapes follow it (the acting caches depend on
-    planner.mpc_steps), whatever planner settings the evaluation then uses.
+    cfg, meta: the checkpoint's own config and metadata (``ckpt.newest_meta``): the state's
+    shapes follow them (the acting caches depend on planner.mpc_steps), whatever planner
+    settings the evaluation then uses.
     """
     import jax
     import numpy as np
 
     from mjx_collo import parallel, trainer
 
-    meta = ckpt.meta(step)
     n = meta["num_runs"]
     keys = parallel.seed_keys(cfg, n)
     # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
     hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
     init = trainer.make_train(cfg, env).init
     abstract = jax.eval_shape(jax.vmap(init), keys, hyper)
-    state, rep, _ = ckpt.restore(
-        abstract.replace(replay=None), abstract.replay if replay else None, step
+    state, rep, _, step = ckpt.restore(
+        abstract.replace(replay=None), abstract.replay if replay else None, step, on_skip
     )
-    return state.replace(replay=rep), keys
+    return state.replace(replay=rep), keys, step

@@ -37,7 +37,7 @@ def test_a_state_with_nan_is_not_saved_and_the_last_good_one_stays(tmp_path):
     ck.wait()
     assert ck.latest_step() == 10
     abstract = jax.eval_shape(lambda: _state([0.0, 0.0]))
-    train, _, meta = ck.restore(abstract)
+    train, _, meta, _ = ck.restore(abstract)
     np.testing.assert_array_equal(np.asarray(train["w"]), [1.0, 2.0])
     assert meta["env_steps"] == 10
     ck.close()
@@ -53,7 +53,7 @@ def test_opening_read_only_restores_without_warnings(tmp_path, caplog):
     ck.close()
     with caplog.at_level("WARNING"):
         ro = checkpoint.Checkpointer(tmp_path, read_only=True)
-        train, _, meta = ro.restore(jax.eval_shape(lambda: _state([0.0, 0.0])))
+        train, _, meta, _ = ro.restore(jax.eval_shape(lambda: _state([0.0, 0.0])))
     assert meta["env_steps"] == 10 and ro.latest_step() == 10
     np.testing.assert_array_equal(np.asarray(train["w"]), [1.0, 2.0])
     assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == []
@@ -126,7 +126,7 @@ def test_a_checkpoint_saved_sharded_over_two_devices_restores_on_one(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     ck = checkpoint.Checkpointer(tmp_path / "checkpoints", read_only=True)
     abstract = jax.eval_shape(lambda: {"w": jnp.zeros((2, 4)), "count": jnp.int32(0)})
-    train, _, _ = ck.restore(abstract)
+    train, _, _, _ = ck.restore(abstract)
     np.testing.assert_array_equal(np.asarray(train["w"]), np.arange(8.0).reshape(2, 4))
     assert train["w"].sharding.device_set == {jax.local_devices()[0]}
     ck.close()

@@ -148,3 +148,185 @@ def test_an_interrupted_run_saves_and_exits_128_plus_the_signal(tmp_path, sig, c
         int(p.name) for p in (tmp_path / "r" / "checkpoints").iterdir() if p.name.isdigit()
     )
     assert ckpts and ckpts[-1] < 40000
+
+
+# ---- damaged checkpoints -------------------------------------------------------------------
+
+
+def _saved(directory: Path, steps=(10, 20, 30), cfg=None, num_runs=1):
+    """A checkpoint directory holding ``steps``, each ``{"w": step}``, saved through the real
+    Checkpointer (the train state is a small stand-in: restore does not depend on its shape)."""
+    import jax.numpy as jnp
+
+    from mjx_collo import checkpoint, config
+
+    cfg = cfg or config.load(task="reacher_easy", presets=["debug"])
+    ck = checkpoint.Checkpointer(directory, keep=10)
+    for s in steps:
+        meta = {"iteration": s, "env_steps": s, "num_runs": num_runs}
+        meta["labels"] = [{"seed": i} for i in range(num_runs)]
+        assert ck.save(s, {"w": jnp.full((256,), float(s))}, None, cfg, meta)
+    ck.close()
+
+
+def _biggest_file(d: Path) -> Path:
+    return max((p for p in d.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+
+
+DAMAGE = {
+    "an empty newer step directory": (40, lambda d: (d / "40").mkdir()),
+    "an array file cut short": (
+        30,
+        lambda d: os.truncate(_biggest_file(d / "30" / "train"), 10),
+    ),
+    "a missing metadata file": (30, lambda d: (d / "30" / "meta" / "metadata").unlink()),
+    "a metadata file cut short": (
+        30,
+        lambda d: (d / "30" / "meta" / "metadata").write_text('{"format_version": 1, "con'),
+    ),
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGE))
+@pytest.mark.parametrize("read_only", [False, True], ids=["resume", "eval"])
+def test_restore_skips_a_damaged_step_names_it_and_keeps_it(tmp_path, damage, read_only):
+    """Before: an empty newer step folder, a half-written file or a missing metadata file made
+    resume and `make eval` fail with a 28-145-line traceback, and the intact older checkpoints
+    were not used."""
+    import jax
+
+    from mjx_collo import checkpoint
+
+    d = tmp_path / "checkpoints"
+    _saved(d)
+    bad, damage_fn = DAMAGE[damage]
+    damage_fn(d)
+    ck = checkpoint.Checkpointer(d, keep=10, read_only=read_only)
+    skipped = []
+    abstract = jax.eval_shape(lambda: {"w": jax.numpy.zeros((256,))})
+    train, _, meta, step = ck.restore(abstract, on_skip=lambda s, why: skipped.append((s, why)))
+    expected = 30 if bad == 40 else 20
+    assert step == expected and meta["env_steps"] == expected
+    assert float(train["w"][0]) == expected
+    assert [s for s, _ in skipped] == [bad] and "\n" not in skipped[0][1]
+    assert (d / str(bad)).exists()  # named, never deleted
+    ck.close()
+
+
+def test_when_no_step_restores_the_error_names_each_one(tmp_path):
+    import jax
+
+    from mjx_collo import checkpoint
+
+    d = tmp_path / "checkpoints"
+    _saved(d, steps=(10, 20))
+    for s in (10, 20):
+        (d / str(s) / "meta" / "metadata").unlink()
+    ck = checkpoint.Checkpointer(d, read_only=True)
+    with pytest.raises(checkpoint.CheckpointError) as e:
+        ck.restore(jax.eval_shape(lambda: {"w": jax.numpy.zeros((256,))}))
+    assert (
+        "no usable checkpoint" in str(e.value) and "20 (" in str(e.value) and "10 (" in str(e.value)
+    )
+
+
+def _train_cli(run_dir: Path, *args: str, cache: Path | None = None) -> subprocess.Popen:
+    env = {**os.environ, "MJX_COLLO_CACHE": str(cache or ROOT / ".pytest_cache" / "xla")}
+    cmd = [sys.executable, str(ROOT / "train.py"), "--run", str(run_dir), "--no-progress"]
+    return subprocess.Popen(
+        cmd + list(args),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env=env,
+    )
+
+
+@pytest.mark.parametrize(
+    "args, named",
+    [
+        (["wm.deter=48"], "wm.deter"),
+        (["--seeds", "2"], "seed/sweep runs"),
+    ],
+)
+def test_a_resume_that_differs_is_refused_before_compiling(tmp_path, args, named):
+    """Before: a config mismatch on resume was reported only after a 77-99 s compile. The run's
+    checkpoint here holds a stand-in state: the refusal reads only its metadata."""
+    from mjx_collo import config
+
+    cfg = config.load(task="reacher_easy", presets=["debug"])
+    _saved(tmp_path / "r" / "checkpoints", steps=(400,), cfg=cfg)
+    proc = _train_cli(tmp_path / "r", "--env", "reacher_easy", "--preset", "debug", *args)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, (out, err)
+    err = err.strip()
+    assert len(err.splitlines()) == 1 and named in err, err
+    assert "compiled" not in out and "initialised" not in out
+
+
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_during_start_up_stops_at_once_with_one_line(tmp_path, sig, code):
+    """Before: Ctrl-C while the program traced or compiled was lost (the run trained to the end)
+    or became a traceback 50 s later. With its own empty compile cache the compile takes tens of
+    seconds, so the exit code and the missing "compiled" line show it stopped before that."""
+    import signal
+    import time
+
+    proc = _train_cli(
+        tmp_path / "r", "--env", "reacher_easy", "--preset", "debug", cache=tmp_path / "cache"
+    )
+    before = [proc.stdout.readline() for _ in range(1)]
+    while not before[-1].startswith("mjx_collo: "):  # the run directory is taken
+        assert before[-1] and len(before) < 20, before
+        before.append(proc.stdout.readline())
+    time.sleep(2.0)  # into tracing
+    t = time.monotonic()
+    proc.send_signal(getattr(signal, sig))
+    out, err = proc.communicate(timeout=120)
+    waited = time.monotonic() - t
+    assert proc.returncode == code, (out, err)
+    err = err.strip()
+    assert len(err.splitlines()) == 1 and f"{sig} received while starting up" in err, err
+    assert "compiled" not in out, out
+    assert not (tmp_path / "r" / "checkpoints").exists() or not any(
+        (tmp_path / "r" / "checkpoints").iterdir()
+    )
+    assert not list((tmp_path / "r").glob("*.tmp"))
+    print(f"{sig} during start-up: exited {waited:.1f} s after the signal")
+
+
+@pytest.mark.slow
+def test_resume_and_eval_pass_over_a_damaged_newest_checkpoint(tmp_path):
+    """End to end, files really cut: training resumes from the newest intact checkpoint, naming
+    the damaged one and moving it aside (the run saves that step again); `make eval` evaluates
+    the newest intact one and names the damaged one."""
+    run = tmp_path / "r"
+    base = ["--env", "reacher_easy", "--preset", "debug"]
+    proc = _train_cli(run, *base, "--steps", "800")
+    out, err = proc.communicate(timeout=900)
+    assert proc.returncode == 0, (out, err)
+    ckpts = run / "checkpoints"
+    os.truncate(_biggest_file(ckpts / "800" / "train"), 10)
+
+    proc = _train_cli(run, *base, "--steps", "1200")
+    out, err = proc.communicate(timeout=900)
+    assert proc.returncode == 0, (out, err)
+    assert "checkpoint " in out and "800 skipped, damaged or partial" in out, out
+    assert f"resumed from {ckpts / '400'}" in out, out
+    assert (run / "checkpoints.damaged" / "800").is_dir()
+    assert sorted(int(p.name) for p in ckpts.iterdir() if p.name.isdigit())[-2:] == [800, 1200]
+
+    (ckpts / "1200" / "meta" / "metadata").unlink()
+    ev = subprocess.run(
+        [sys.executable, str(ROOT / "evaluate.py"), "--ckpt", str(run), "--episodes", "1"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=900,
+        env={**os.environ, "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla")},
+    )
+    assert ev.returncode == 0, (ev.stdout, ev.stderr)
+    assert "checkpoint step 1200 skipped, damaged or partial" in ev.stderr
+    assert "Traceback" not in ev.stderr
+    assert (run / "eval_800.json").exists() and not (run / "eval_1200.json").exists()
