@@ -462,6 +462,14 @@ def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:
             raise ConfigError(f"bad sweep values for '{key}': {vals!r} are not floats") from None
         if not out[key]:
             raise ConfigError(f"sweep '{key}' has no values")
+    pc = cfg.planner
+    if "planner.value_lambda" in out and pc.kind in ("latco", "collodreamer"):
+        if pc.solver != "adam":
+            raise ConfigError(
+                f"cannot sweep planner.value_lambda with planner.solver={pc.solver}: a swept "
+                "lambda is a lambda-return over the plan, which needs planner.solver=adam (the "
+                f"{pc.solver} residuals bootstrap the value at the plan's end only)"
+            )
     return out
 
 

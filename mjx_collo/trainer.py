@@ -84,6 +84,12 @@ def validate(cfg: Config) -> None:
                 f"planner.solver=adam; the {pc.solver} residuals bootstrap the value at the "
                 f"plan's end only: add planner.value_lambda=1.0"
             )
+    if cfg.value.enabled and cfg.value.mode == "plan_inner" and cfg.value.v_every > pc.iters:
+        raise ConfigError(
+            f"value.mode=plan_inner steps the value every value.v_every={cfg.value.v_every} "
+            f"solver iterations, but a planning call runs planner.iters={pc.iters}: the value "
+            f"would never learn; set value.v_every <= {pc.iters}"
+        )
     if run.prefill // per_iter < cfg.replay.length:
         raise ConfigError(
             f"run.prefill={run.prefill} env steps give {run.prefill // per_iter} replay rows per "

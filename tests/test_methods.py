@@ -2,7 +2,12 @@
 the cheapest task to compile), with the world-model, value and actor updates it schedules.
 
 Two seeds on one device: the programs are then those of the smoke study's cells and of the trainer
-tests (same config, same shapes), which the persistent compile cache shares between them."""
+tests (same config, same shapes), which the persistent compile cache shares between them.
+
+The value modes that learn from the plan (``plan_inner``, ``plan_final``) and the augmented latent
+objective J_latent train here too, each with every float key of the config swept (one value each,
+the config's own): what the paper's ablations run, and proof that every key in
+``config.float_keys`` traces."""
 
 from __future__ import annotations
 
@@ -24,15 +29,35 @@ def _changed(a, b) -> bool:
     )
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_one_chunk_of_every_method_trains_and_evaluates(method):
-    cfg = config.load(task="reacher_easy", method=method, presets=["debug"])
+def every_float_key(cfg) -> dict[str, list[float]]:
+    """A sweep of every key in ``config.float_keys``, each at the config's own value."""
+    flat = config.flatten(config.to_dict(cfg))
+    return {k: [flat[k]] for k in config.float_keys(cfg)}
+
+
+ABLATION_VARIANTS = {
+    # debug plans run 3 solver iterations: a value step every one of them
+    "plan_inner+j_latent": ["value.mode=plan_inner", "value.v_every=1", "j_latent.enabled=true"],
+    "plan_final": ["value.mode=plan_final"],
+}
+
+
+@pytest.mark.parametrize(
+    "method, overrides",
+    [(m, []) for m in METHODS] + [("collodreamer", v) for v in ABLATION_VARIANTS.values()],
+    ids=METHODS + list(ABLATION_VARIANTS),
+)
+def test_one_chunk_of_every_method_trains_and_evaluates(method, overrides):
+    cfg = config.load(task="reacher_easy", method=method, presets=["debug"], overrides=overrides)
     tr = trainer.make_train(cfg, envs.from_config(cfg.env))
     init, chunk, evaluate = parallel.batched(tr)
-    keys = parallel.seed_keys(cfg, 2)
-    s0 = jax.device_get(init(keys, {}))
-    s, m = chunk(init(keys, {}), jnp.zeros((), jnp.int32))
+    sweep = every_float_key(cfg) if overrides else {}
+    n, hyper, _ = parallel.sweep_grid(sweep, 2)
+    keys = parallel.seed_keys(cfg, n)
+    s0 = jax.device_get(init(keys, hyper))
+    s, m = chunk(init(keys, hyper), jnp.zeros((), jnp.int32))
     s, m = jax.device_get((s, m))
+    assert sorted(s.hyper) == sorted(sweep)
 
     # the chunk crossed the prefill and trained: pretraining plus scheduled updates
     run = cfg.run
@@ -44,9 +69,15 @@ def test_one_chunk_of_every_method_trains_and_evaluates(method):
     assert _changed(s.wm, s0.wm), "world-model parameters did not change"
     if cfg.value.enabled:
         assert _changed(s.value.params, s0.value.params), "value parameters did not change"
-        assert np.isfinite(np.asarray(m["value/loss"])).any()
+        loss = {"replay": "value/loss", "plan_final": "plan/plan_value/loss"}.get(
+            cfg.value.mode, "plan/value/plan_loss"
+        )  # plan_final: a value step per planning call; plan_inner: inside the planner
+        assert np.isfinite(np.asarray(m[loss])).any(), sorted(m)
     if method == "dreamer":
         assert _changed(s.actor.params, s0.actor.params), "actor parameters did not change"
+    if cfg.j_latent.enabled:
+        jl = np.asarray(m["wm/loss/j_latent"])
+        assert np.isfinite(jl).any() and np.all(np.isfinite(jl) | np.isnan(jl)), sorted(m)
     else:
         plan_returns = np.asarray(m["plan/plan_return"])
         assert np.isfinite(plan_returns).any(), "no planning call after the prefill"
