@@ -186,9 +186,30 @@ def train_step(
     skips the actor update (``actor/nonfinite`` = 1).
     """
     k_img, k_val = jax.random.split(key)
+    new_astate, aux, metrics = actor_step(
+        cfg, model, wm_params, astate, vstate.target, starts, k_img
+    )
+    feats = jax.lax.stop_gradient(aux["feats"][:-1])
+    targets = jax.lax.stop_gradient(aux["targets"])
+    vstate, vmetrics = value_lib.update(cfg.value, vstate, feats, targets, aux["weights"], k_val)
+    return new_astate, vstate, {**metrics, **vmetrics}
+
+
+def actor_step(
+    cfg: Config,
+    model: ImaginationModel,
+    wm_params: Params,
+    astate: ActorState,
+    target: Any,
+    starts: State,
+    key: jax.Array,
+) -> tuple[ActorState, dict[str, jax.Array], dict[str, jax.Array]]:
+    """The actor update alone, scored by the value ``target`` params: Dreamer's actor step, and
+    the policy prior's (``planner.init: policy``), whose value is the planner's and learns its
+    own way (``value.mode``). Returns (actor state, the imagination's aux, metrics)."""
     starts = jax.lax.stop_gradient(starts)
     grad_fn = jax.value_and_grad(actor_loss, has_aux=True)
-    (loss, aux), grads = grad_fn(astate.params, cfg, model, wm_params, vstate.target, starts, k_img)
+    (loss, aux), grads = grad_fn(astate.params, cfg, model, wm_params, target, starts, key)
     grads = grads["params"]
     tx = value_lib.make_optimizer(cfg.actor.optim)
     upd, opt_state = tx.update(grads, astate.opt_state, astate.params["params"])
@@ -198,18 +219,19 @@ def train_step(
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
     new_astate = ActorState(params={**astate.params, "params": new_p}, opt_state=opt_state)
     new_astate = jax.tree.map(lambda n, o: jnp.where(finite, n, o), new_astate, astate)
-    feats = jax.lax.stop_gradient(aux["feats"][:-1])
-    targets = jax.lax.stop_gradient(aux["targets"])
-    vstate, vmetrics = value_lib.update(cfg.value, vstate, feats, targets, aux["weights"], k_val)
     metrics = {
         "actor/loss": loss,
         "actor/imag_return": jnp.mean(aux["targets"][0]),
         "actor/entropy": jnp.mean(aux["entropy"]),
         "actor/grad_norm": optax.global_norm(grads),
         "actor/nonfinite": (~finite).astype(jnp.float32),
-        **vmetrics,
     }
-    return new_astate, vstate, metrics
+    return new_astate, aux, metrics
+
+
+def mode(cfg: ActorConfig, params: Any, feat: jax.Array, action_dim: int) -> jax.Array:
+    """The deterministic action tanh(mean) on features ``[..., F]`` (evaluation, policy prior)."""
+    return jnp.tanh(dist_params(cfg, params, feat, action_dim)[0])
 
 
 def flatten_starts(states: State, batch_ndim: int) -> State:

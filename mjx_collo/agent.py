@@ -47,6 +47,10 @@ class Agent(NamedTuple):
         return self.cfg.planner.kind == "dreamer"
 
     @property
+    def uses_prior(self) -> bool:
+        return uses_prior(self.cfg)
+
+    @property
     def cache_len(self) -> int:
         return 1 if self.uses_actor else planner_lib.cache_len(self.cfg)
 
@@ -58,6 +62,12 @@ def value_bootstrap(cfg: Config) -> bool:
         and cfg.value.enabled
         and cfg.value.bootstrap
     )
+
+
+def uses_prior(cfg: Config) -> bool:
+    """Whether the planner starts from a learned policy prior (``planner.init: policy`` or
+    ``policy_cem``): an actor network trained beside the world model (docs/ALGORITHM.md §4.10)."""
+    return cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
 
 
 def make_agent(cfg: Config, action_dim: int) -> Agent:
@@ -72,7 +82,13 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
         def value(vp, f):
             return value_lib.clip_value(cfg.value, value_lib.apply_value(cfg.value, vp, f))
 
-    model = wm_lib.latent_model(cfg.wm, cfg.planner.space, value)
+    policy = None
+    if uses_prior(cfg):
+
+        def policy(ap, f):
+            return actor_lib.mode(cfg.actor, ap, f, action_dim)
+
+    model = wm_lib.latent_model(cfg.wm, cfg.planner.space, value, policy)
     return Agent(cfg, action_dim, model, planner_lib.make_planner(cfg, model, action_dim))
 
 

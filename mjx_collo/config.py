@@ -184,7 +184,7 @@ class PlannerConfig(Section):
     gamma: float
     value_lambda: Annotated[float, Field(ge=0.0, le=1.0)]
     warm_start: bool
-    init: Literal["rollout", "random", "cem"]
+    init: Literal["rollout", "random", "cem", "policy", "policy_cem"]
     init_std: float
     init_cem: InitCEMConfig
     shooting: ShootingConfig

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from mjx_collo import actor as actor_lib
+from mjx_collo import agent as agent_lib
 from mjx_collo import replay as replay_lib
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm_lib
@@ -54,6 +55,7 @@ class Learner(NamedTuple):
 def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind: Bind) -> Learner:
     """Learning for ``cfg``; ``bind(hyper) -> (config with the swept values, Agent)``."""
     uses_actor = cfg.planner.kind == "dreamer"
+    uses_prior = agent_lib.uses_prior(cfg)  # an actor trained as the planner's policy prior
     use_value = cfg.value.enabled
     value_mode = cfg.value.mode if use_value and not uses_actor else "none"
     feat_dim = wm_lib.feat_size(cfg.wm)
@@ -62,7 +64,11 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
         """-> (world model, its optimizer state, value state, actor state, J_latent's old model)."""
         wm = wm_lib.init(c.wm, k_wm, obs_shape, action_dim)
         vstate = value_lib.init_value(c.value, k_val, feat_dim) if use_value else None
-        astate = actor_lib.init_actor(c.actor, k_act, feat_dim, action_dim) if uses_actor else None
+        astate = (
+            actor_lib.init_actor(c.actor, k_act, feat_dim, action_dim)
+            if uses_actor or uses_prior
+            else None
+        )
         wm_old = wm if c.j_latent.enabled else None
         return wm, wm_lib.init_opt_state(c.wm, wm), vstate, astate, wm_old
 
@@ -95,6 +101,14 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
             vbatch = {"feat": post.feat, "reward": post.reward, "is_first": post.is_first}
             vstate, vm = value_lib.train_step(c.value, vstate, vbatch, k_v)
             metrics.update(vm)
+        if uses_prior:
+            # Dreamer's actor objective through the model, on the planner's own value (its target
+            # params); the value keeps learning its own way (value.mode)
+            starts = actor_lib.flatten_starts(post.state, 2)
+            imag = wm_lib.imagination_model(c.wm)
+            k_a = jax.random.fold_in(k_v, 1)
+            astate, _, am = actor_lib.actor_step(c, imag, wm, astate, vstate.target, starts, k_a)
+            metrics.update(am)
         bad = wm_m["nonfinite"] > 0
         streak = jnp.where(bad, s.nonfinite_streak + 1, 0)
         wm_old = s.wm_old

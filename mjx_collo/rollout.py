@@ -61,10 +61,11 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
             "is_first": jnp.ones((n,), bool),
         }
 
-    def start(c: Config, agent, wm, value_target, k_env: jax.Array, k_agent: jax.Array):
-        """Reset the envs, start the agent's carry and a replay holding the first observations."""
+    def start(c: Config, agent, wm, value_target, k_env, k_agent, prior=None):
+        """Reset the envs, start the agent's carry and a replay holding the first observations
+        (``prior``: the policy prior's params, when the planner starts from it)."""
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, num_envs))
-        params = wm_lib.plan_params(wm, value_target)
+        params = wm_lib.plan_params(wm, value_target, prior)
         carry = agent_lib.init_carry(agent, params, num_envs, k_agent)
         obs_shape = tuple(env_state.obs.shape[1:])
         replay = replay_lib.init(
@@ -87,7 +88,7 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
         lam = jnp.full((), NAN)
         if not uses_actor:
             vt = vstate.target if vstate is not None else None
-            params = wm_lib.plan_params(s.wm, vt)
+            params = wm_lib.plan_params(s.wm, vt, s.actor.params if agent.uses_prior else None)
 
             def do_plan(operand):
                 carry, vstate = operand
@@ -175,7 +176,7 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
         k_env, k_carry, key = jax.random.split(key, 3)
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, n))
         vt = s.value.target if s.value is not None else None
-        params = wm_lib.plan_params(s.wm, vt)
+        params = wm_lib.plan_params(s.wm, vt, s.actor.params if agent.uses_prior else None)
         carry = agent_lib.init_carry(agent, params, n, k_carry)
         actor_params = s.actor.params if uses_actor else None
 

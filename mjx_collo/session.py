@@ -129,6 +129,13 @@ def eval_config(cfg: Config, overrides: list[str]) -> Config:
     new = config_lib.build(
         config_lib.apply_overrides(config_lib.to_dict(cfg), overrides, EVAL_SECTIONS)
     )
+    from mjx_collo.agent import uses_prior
+
+    if uses_prior(new) and not uses_prior(cfg):
+        raise config_lib.ConfigError(
+            f"cannot evaluate with planner.init={new.planner.init}: this checkpoint was trained "
+            f"with planner.init={cfg.planner.init} and holds no policy prior"
+        )
     if (new.planner.kind == "dreamer") != (cfg.planner.kind == "dreamer"):
         raise config_lib.ConfigError(
             f"cannot evaluate a planner.kind={cfg.planner.kind} checkpoint with "

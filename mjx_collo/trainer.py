@@ -121,6 +121,18 @@ def make_train(cfg: Config, env) -> Trainer:
             f"planner (latco or collodreamer), not planner.kind={cfg.planner.kind}; use value.mode=replay"
         )
 
+    if agent_lib.uses_prior(cfg):
+        if cfg.planner.kind not in planner_lib.COLLOCATION:
+            raise ConfigError(
+                f"planner.init={cfg.planner.init} starts a collocation plan from the policy prior; "
+                f"planner.kind={cfg.planner.kind} has no collocation plan (use latco or "
+                "collodreamer, or planner.init=cem)"
+            )
+        if not cfg.value.enabled:
+            raise ConfigError(
+                f"planner.init={cfg.planner.init} trains its policy prior on the value's returns: "
+                "it needs value.enabled=true"
+            )
     agent = agent_lib.make_agent(cfg, action_dim)
 
     def bind(hyper: dict[str, jax.Array]) -> tuple[Config, agent_lib.Agent]:
@@ -139,7 +151,8 @@ def make_train(cfg: Config, env) -> Trainer:
         k_wm, k_val, k_act, k_env, k_agent, key = jax.random.split(key, 6)
         wm, wm_opt, vstate, astate, wm_old = learner.init(c, k_wm, k_val, k_act)
         vt = vstate.target if vstate is not None else None
-        env_state, carry, replay = rollout.start(c, agent, wm, vt, k_env, k_agent)
+        prior = astate.params if agent.uses_prior else None
+        env_state, carry, replay = rollout.start(c, agent, wm, vt, k_env, k_agent, prior)
         return TrainState(
             wm=wm,
             wm_opt=wm_opt,

@@ -44,8 +44,13 @@ ABLATION_VARIANTS = {
 
 @pytest.mark.parametrize(
     "method, overrides",
-    [(m, []) for m in METHODS] + [("collodreamer", v) for v in ABLATION_VARIANTS.values()],
-    ids=METHODS + list(ABLATION_VARIANTS),
+    [(m, []) for m in METHODS]
+    + [("collodreamer", v) for v in ABLATION_VARIANTS.values()]
+    + [
+        pytest.param("collodreamer", [f"planner.init={init}"], marks=pytest.mark.slow)
+        for init in ("policy", "policy_cem")
+    ],
+    ids=METHODS + list(ABLATION_VARIANTS) + ["policy_prior", "policy_prior_cem"],
 )
 def test_one_chunk_of_every_method_trains_and_evaluates(method, overrides):
     cfg = config.load(task="reacher_easy", method=method, presets=["debug"], overrides=overrides)
@@ -73,14 +78,14 @@ def test_one_chunk_of_every_method_trains_and_evaluates(method, overrides):
             cfg.value.mode, "plan/value/plan_loss"
         )  # plan_final: a value step per planning call; plan_inner: inside the planner
         assert np.isfinite(np.asarray(m[loss])).any(), sorted(m)
-    if method == "dreamer":
+    if method == "dreamer" or cfg.planner.init.startswith("policy"):  # the policy prior's too
         assert _changed(s.actor.params, s0.actor.params), "actor parameters did not change"
+    if method != "dreamer":
+        plan_returns = np.asarray(m["plan/plan_return"])
+        assert np.isfinite(plan_returns).any(), "no planning call after the prefill"
     if cfg.j_latent.enabled:
         jl = np.asarray(m["wm/loss/j_latent"])
         assert np.isfinite(jl).any() and np.all(np.isfinite(jl) | np.isnan(jl)), sorted(m)
-    else:
-        plan_returns = np.asarray(m["plan/plan_return"])
-        assert np.isfinite(plan_returns).any(), "no planning call after the prefill"
 
     out = jax.device_get(evaluate(s, keys))
     returns = np.asarray(out["returns"])

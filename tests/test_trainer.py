@@ -244,6 +244,7 @@ def test_make_eval_with_another_planner_budget(runs, tmp_path):
         ("wm.deter=32", "cannot override 'wm.deter'"),
         ("planner.kind=dreamer", "only dreamer checkpoints hold an actor"),
         ("planner.mpc_step=4", "unknown config key 'planner.mpc_step'"),
+        ("planner.init=policy", "holds no policy prior"),
     ],
 )
 def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(runs, override, message):
@@ -258,6 +259,11 @@ def test_config_inconsistency_names_the_fix():
     with pytest.raises(config.ConfigError, match="add planner.value_lambda=1.0"):
         trainer.validate(debug_cfg(overrides=["planner.solver=gauss_newton"]))
     trainer.validate(debug_cfg(overrides=["planner.solver=gauss_newton", "planner.value_lambda=1"]))
+    env = envs.from_config(debug_cfg().env)
+    with pytest.raises(config.ConfigError, match="has no collocation plan"):
+        trainer.make_train(debug_cfg("cem", overrides=["planner.init=policy"]), env)
+    with pytest.raises(config.ConfigError, match="needs value.enabled=true"):
+        trainer.make_train(debug_cfg(overrides=["planner.init=policy", "value.enabled=false"]), env)
 
 
 def test_task_overlay_sits_between_the_method_and_the_users_overrides():

@@ -20,7 +20,7 @@ from mjx_collo.config import Config, ShootingConfig
 from mjx_collo.planners import duals, shooting, solvers
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
-from mjx_collo.planners.protocol import rollout
+from mjx_collo.planners.protocol import policy_rollout, rollout
 
 InnerFn = Callable[[Any, "PlanState", jax.Array], Any]
 
@@ -45,10 +45,19 @@ def reset_multipliers(cfg: Config, plan: PlanState) -> PlanState:
 def init_plan(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> PlanState:
     """Cold plan: actions ~ N(0, init_std^2) and latents rolled out under them (``planner.init:
     rollout``, feasible start), or N(0, 1) latents like LatCo (``random``), or actions chosen by a
-    small CEM on the same objective J (``cem``: ``planner.init_cem``) and latents rolled out."""
+    small CEM on the same objective J (``cem``: ``planner.init_cem``) and latents rolled out, or
+    the policy prior's own rollout through the model (``policy``), or that CEM with its
+    population centred on the prior's actions (``policy_cem``)."""
     pc = cfg.planner
     ka, kz = jax.random.split(key)
-    if pc.init == "cem":
+    if pc.init == "policy":
+        z, a = policy_rollout(prob.model, prob.params, prob.ctx, pc.horizon)
+        ones = jnp.ones((pc.horizon,), jnp.float32)
+        return reset_multipliers(cfg, PlanState(z=z, a=a, lam=ones, nu=ones))
+    if pc.init == "policy_cem":
+        _, prior = policy_rollout(prob.model, prob.params, prob.ctx, pc.horizon)
+        a = cem_actions(cfg, prob, ka, action_dim, mean=prior)
+    elif pc.init == "cem":
         a = cem_actions(cfg, prob, ka, action_dim)
     else:
         a = pc.init_std * jax.random.normal(ka, (pc.horizon, action_dim))
@@ -59,9 +68,12 @@ def init_plan(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> Pl
     return reset_multipliers(cfg, PlanState(z=z, a=a, lam=ones, nu=ones))
 
 
-def cem_actions(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> jax.Array:
-    """Mean [H, A] of ``init_cem.iters`` CEM iterations (``samples`` sequences from N(0, std^2),
-    refit to the top ``elites``) scored by the collocation objective J of their model rollouts.
+def cem_actions(
+    cfg: Config, prob: Problem, key: jax.Array, action_dim: int, mean: jax.Array | None = None
+) -> jax.Array:
+    """Mean [H, A] of ``init_cem.iters`` CEM iterations (``samples`` sequences from
+    N(mean, std^2), ``mean`` zero unless given, refit to the top ``elites``) scored by the
+    collocation objective J of their model rollouts.
 
     Gradient collocation from random actions finds poor local optima on a trained model; starting
     it from a cheap sampling solution gives the Lagrangian iterations a good basin to refine.
@@ -80,7 +92,10 @@ def cem_actions(cfg: Config, prob: Problem, key: jax.Array, action_dim: int) -> 
     sub = cfg.model_copy(
         update={"planner": cfg.planner.model_copy(update={"kind": "cem", "shooting": shoot})}
     )
-    state, _ = shooting.optimize_shoot(sub, prob, shooting.init_shoot(sub, action_dim), key)
+    start = shooting.init_shoot(sub, action_dim)
+    if mean is not None:
+        start = start.replace(mean=jnp.clip(mean, -1.0, 1.0).astype(start.mean.dtype))
+    state, _ = shooting.optimize_shoot(sub, prob, start, key)
     return jnp.clip(state.mean, -1.0, 1.0)
 
 

@@ -49,6 +49,9 @@ class LatentModel(NamedTuple):
         value) heads of all H states afterwards in one batched call, instead of H small calls
         inside the sequential loop (the heads are half of a rollout's FLOPs). None: the heads
         run inside the loop (``step_reward`` / ``step_reward_value``).
+      policy: optional ``(params, z [Z]) -> a [A]`` the policy prior's action at plan state ``z``
+        (``planner.init: policy``), with ``ctx_policy`` ``(params, ctx) -> a_0`` at the context;
+        :func:`policy_rollout` runs it through the model to start a plan. None: no prior.
     """
 
     start: Callable[[Params, Context, jax.Array], jax.Array]
@@ -64,6 +67,8 @@ class LatentModel(NamedTuple):
     step_feat: Callable[[Params, jax.Array, jax.Array], tuple[jax.Array, jax.Array]] | None = None
     feat_reward: Callable[[Params, jax.Array], jax.Array] | None = None
     feat_value: Callable[[Params, jax.Array], jax.Array] | None = None
+    policy: Callable[[Params, jax.Array], jax.Array] | None = None
+    ctx_policy: Callable[[Params, Context], jax.Array] | None = None
 
 
 def latent_size(model: LatentModel, params: Params, ctx: Context, action_dim: int) -> int:
@@ -99,6 +104,26 @@ def rollout(model: LatentModel, params: Params, ctx: Context, actions: jax.Array
     """
     z, _, _ = _scan_states(model, params, ctx, actions, lambda p, z, a: (model.step(p, z, a), ()))
     return z
+
+
+def policy_rollout(
+    model: LatentModel, params: Params, ctx: Context, horizon: int
+) -> tuple[jax.Array, jax.Array]:
+    """The policy prior run through the model from ``ctx``: a feasible plan (z [H, Z] states
+    z_1..z_H, a [H, A] actions a_0..a_{H-1}) with a_0 = ctx_policy(ctx), z_1 = start(ctx, a_0),
+    a_k = policy(z_k), z_{k+1} = step(z_k, a_k)."""
+    if model.policy is None or model.ctx_policy is None:
+        raise ValueError("policy_rollout needs a model with a policy prior (policy, ctx_policy)")
+    a0 = model.ctx_policy(params, ctx)
+    z1 = model.start(params, ctx, a0)
+
+    def body(z: jax.Array, _) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        a = model.policy(params, z)
+        nz = model.step(params, z, a)
+        return nz, (a, nz)
+
+    _, (a_rest, z_rest) = jax.lax.scan(body, z1, None, length=horizon - 1)
+    return jnp.concatenate([z1[None], z_rest], 0), jnp.concatenate([a0[None], a_rest], 0)
 
 
 def _batched_heads(model: LatentModel, value: bool) -> bool:

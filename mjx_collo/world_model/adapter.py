@@ -31,12 +31,22 @@ Params = Any
 ValueFn = Callable[[Params, jax.Array], jax.Array]
 
 
-def plan_params(wm_params: Params, value_params: Params = None) -> tuple[Params, Params]:
-    """Params of the :func:`latent_model`: (world model, frozen target value or None)."""
-    return (wm_params, value_params)
+def plan_params(
+    wm_params: Params, value_params: Params = None, policy_params: Params = None
+) -> tuple[Params, ...]:
+    """Params of the :func:`latent_model`: (world model, frozen target value or None), and the
+    policy prior's params third when the planner starts from it (``planner.init: policy``)."""
+    if policy_params is None:
+        return (wm_params, value_params)
+    return (wm_params, value_params, policy_params)
 
 
-def latent_model(cfg: WorldModelConfig, space: str, value: ValueFn | None = None) -> LatentModel:
+def latent_model(
+    cfg: WorldModelConfig,
+    space: str,
+    value: ValueFn | None = None,
+    policy: ValueFn | None = None,
+) -> LatentModel:
     """The world model in plan space (docs/ALGORITHM.md §3.2, §4.2), with params
     :func:`plan_params` ``(wm_params, value_params)``.
 
@@ -47,6 +57,10 @@ def latent_model(cfg: WorldModelConfig, space: str, value: ValueFn | None = None
 
     ``value``: ``(value_params, f [F]) -> []``, the value the planner bootstraps with (already
     clipped as the planner should see it), or None for a model without a value.
+
+    ``policy``: ``(policy_params, f [F]) -> a [A]``, the policy prior's deterministic action on
+    features (params third in :func:`plan_params`), or None. In plan space it reads the features
+    of the plan state (the stoch mean where the actor saw samples).
 
     The fused functions (``step_reward``, ``step_reward_value``, ``step_feat``) share one prior
     pass per state between its transition and its heads; rollouts read the reward and value heads
@@ -115,6 +129,8 @@ def latent_model(cfg: WorldModelConfig, space: str, value: ValueFn | None = None
         step_feat=lambda pp, z, a: step_feat(pp[0], z, a),
         feat_reward=lambda pp, f: feat_reward(pp[0], f),
         feat_value=None if value is None else (lambda pp, f: value(pp[1], f)),
+        policy=None if policy is None else (lambda pp, z: policy(pp[2], feat(pp[0], z))),
+        ctx_policy=None if policy is None else (lambda pp, ctx: policy(pp[2], get_feat(ctx))),
     )
 
 
