@@ -444,18 +444,26 @@ def float_keys(cfg: Config) -> list[str]:
 
 
 def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:
-    """``"value.gamma=0.9,0.99;wm.optim.lr=3e-4,6e-4"`` -> {key: [values]} (validated)."""
+    """``"value.gamma=0.9,0.99;wm.optim.lr=3e-4,6e-4"`` -> {key: [values]} (validated).
+
+    Separate items form a grid (every combination). Keys joined by ``+`` are tied: they take the
+    same values together, one axis of the grid (``value.gamma+planner.gamma=0.9,0.99``: the
+    value's discount and the planner's, varied as one discount)."""
     out: dict[str, list[float]] = {}
     valid = float_keys(cfg)
     for item in filter(None, (s.strip() for s in text.replace(";", " ").split())):
         if "=" not in item:
             raise ConfigError(f"bad sweep {item!r}: expected key=v1,v2,...")
         key, vals = item.split("=", 1)
-        if key not in valid:
-            raise ConfigError(
-                f"cannot sweep '{key}': only float hyperparameters can be swept in one compile; "
-                f"choose from: {', '.join(valid)}"
-            )
+        for part in key.split("+"):
+            if part not in valid:
+                raise ConfigError(
+                    f"cannot sweep '{part}': only float hyperparameters can be swept in one "
+                    f"compile; choose from: {', '.join(valid)}"
+                )
+        seen = [p for k in out for p in k.split("+")]
+        if any(part in seen for part in key.split("+")):
+            raise ConfigError(f"sweep key '{key}' repeats a key already swept")
         try:
             out[key] = [float(v) for v in vals.split(",") if v.strip()]
         except ValueError:
@@ -463,7 +471,8 @@ def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:
         if not out[key]:
             raise ConfigError(f"sweep '{key}' has no values")
     pc = cfg.planner
-    if "planner.value_lambda" in out and pc.kind in ("latco", "collodreamer"):
+    swept = [p for k in out for p in k.split("+")]
+    if "planner.value_lambda" in swept and pc.kind in ("latco", "collodreamer"):
         if pc.solver != "adam":
             raise ConfigError(
                 f"cannot sweep planner.value_lambda with planner.solver={pc.solver}: a swept "

@@ -25,12 +25,14 @@ def seed_keys(cfg: Config, num_seeds: int) -> jax.Array:
 def sweep_grid(
     sweep: dict[str, list[float]], seeds: int
 ) -> tuple[int, dict[str, jax.Array], list[dict[str, float]]]:
-    """Cartesian product of swept values x seeds -> (S total, hyper {key: [S]}, per-run labels)."""
-    keys = sorted(sweep)
+    """Cartesian product of swept values x seeds -> (S total, hyper {key: [S]}, per-run labels).
+
+    A key ``a+b`` (``config.parse_sweep``) is one axis whose values both keys take together."""
     combos: list[dict[str, float]] = [{}]
-    for k in keys:
-        combos = [{**c, k: v} for c in combos for v in sweep[k]]
+    for k in sorted(sweep):
+        combos = [{**c, **dict.fromkeys(k.split("+"), v)} for c in combos for v in sweep[k]]
     labels = [dict(c, seed=i) for c in combos for i in range(seeds)]
+    keys = sorted(p for k in sweep for p in k.split("+"))
     hyper = {k: jnp.asarray([lab[k] for lab in labels], jnp.float32) for k in keys}
     return len(labels), hyper, labels
 

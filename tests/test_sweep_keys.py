@@ -64,3 +64,23 @@ def test_plan_inner_that_would_never_step_the_value_is_refused():
     with pytest.raises(config.ConfigError, match=r"value.v_every <= 3"):
         trainer.validate(cfg)
     trainer.validate(cfg.model_copy(update={"value": cfg.value.model_copy(update={"v_every": 3})}))
+
+
+def test_tied_keys_take_their_values_together():
+    """``a+b=v1,v2`` is one axis of the grid (the paper's discount ablation varies the value's
+    and the planner's discount as one), crossed with the other items and the seeds."""
+    cfg = config.load(task="reacher_easy", presets=["debug"])
+    sweep = config.parse_sweep("value.gamma+planner.gamma=0.9,0.99 wm.optim.lr=1e-3,2e-3", cfg)
+    n, hyper, labels = parallel.sweep_grid(sweep, 2)
+    assert n == 8 and sorted(hyper) == ["planner.gamma", "value.gamma", "wm.optim.lr"]
+    assert [lab["value.gamma"] for lab in labels] == [lab["planner.gamma"] for lab in labels]
+    assert sorted({(lab["value.gamma"], lab["wm.optim.lr"]) for lab in labels}) == [
+        (0.9, 1e-3),
+        (0.9, 2e-3),
+        (0.99, 1e-3),
+        (0.99, 2e-3),
+    ]
+    with pytest.raises(config.ConfigError, match="repeats a key"):
+        config.parse_sweep("value.gamma+planner.gamma=0.9 value.gamma=0.95", cfg)
+    with pytest.raises(config.ConfigError, match="cannot sweep 'planner.horizon'"):
+        config.parse_sweep("value.gamma+planner.horizon=0.9", cfg)
