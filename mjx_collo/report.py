@@ -32,6 +32,7 @@ class Series:
     """One variant's runs of one task (a swept variant gives one series per swept value)."""
 
     label: str
+    variant: str = ""  # the variant's name (sections select by it)
     evals: dict[int, np.ndarray] = field(default_factory=dict)  # env step -> returns [seeds]
     wall_s: float = float("nan")
     env_steps: int = 0
@@ -73,7 +74,7 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
     out: dict[str, Series] = {}
     for name in dict.fromkeys(names):
         idx = [i for i, x in enumerate(names) if x == name]
-        s = Series(label=name, runs=len(idx), platforms=platforms)
+        s = Series(label=name, variant=variant.name, runs=len(idx), platforms=platforms)
         by_step: dict[int, dict[int, float]] = {}
         for r in rows:
             if r["seed"] in idx and r["kind"] == "eval" and "eval/return" in r:
@@ -216,6 +217,44 @@ def _aggregate(cfg: StudyConfig, data: dict, budget: int, out_dir: Path) -> list
     return lines + ["", f"![performance profile]({out_dir.name}/{name})", ""]
 
 
+def _task_block(
+    cfg: StudyConfig,
+    task: str,
+    series: list[Series],
+    budgets: list[int | str],
+    png: Path,
+    level: str,
+) -> list[str]:
+    """One task's learning curves (``png``) and its table at the budgets, with the anchors."""
+    _plot_curves(task, series, png)
+    lines = [f"{level} {task}", "", f"![{task}]({png.parent.name}/{png.name})", ""]
+    heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
+    anchor_heads = [a.name for a in cfg.anchors]
+    lines += [
+        "| variant | " + " | ".join(heads + anchor_heads) + " |",
+        "|---" * (1 + len(heads) + len(anchor_heads)) + "|",
+    ]
+    for s in series:
+        row = [
+            _fmt(s.at(b)) if (b := _budget_of(cfg, task, x)) is not None else "—" for x in budgets
+        ]
+        lines.append(
+            f"| {s.label} (n={s.runs}) | " + " | ".join(row + [""] * len(anchor_heads)) + " |"
+        )
+    for a in cfg.anchors:
+        if task in a.scores:
+            at = _budget_of(cfg, task, a.budget)
+            cells_ = ["" for _ in heads] + ["" for _ in anchor_heads]
+            cells_[len(heads) + cfg.anchors.index(a)] = f"{a.scores[task]:g}" + (
+                f" at {_k(at)}" if at else ""
+            )
+            lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
+    lines.append("")
+    if "paper" in budgets:
+        lines += [f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps.", ""]
+    return lines
+
+
 def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
     """Write ``out_md`` and its PNGs (in ``<out_md stem>/``) from the cells under ``results``."""
     out_dir = out_md.parent / out_md.stem
@@ -256,36 +295,25 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
     budgets: list[int | str] = list(cfg.budgets or [cfg.steps])
     if cfg.paper_budgets:
         budgets.append("paper")
-    for task in cfg.tasks:
-        series = data.get(task, [])
-        png = out_dir / f"{task}.png"
-        _plot_curves(task, series, png)
-        lines += [f"## {task}", "", f"![{task}]({out_dir.name}/{png.name})", ""]
-        heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
-        anchor_heads = [a.name for a in cfg.anchors]
-        lines += [
-            "| variant | " + " | ".join(heads + anchor_heads) + " |",
-            "|---" * (1 + len(heads) + len(anchor_heads)) + "|",
-        ]
-        for s in series:
-            row = [
-                _fmt(s.at(b)) if (b := _budget_of(cfg, task, x)) is not None else "—"
-                for x in budgets
+    if cfg.sections:
+        for sec in cfg.sections:
+            chosen = {v.name for v in cfg.variants if sec.name in v.sections}
+            lines += [f"## {sec.title}", ""]
+            if sec.paper:
+                lines += [f"**The paper:** {sec.paper}", ""]
+            lines += [
+                f"**Here:** {sec.finding or 'to be written when the cells have finished.'}",
+                "",
             ]
-            lines.append(
-                f"| {s.label} (n={s.runs}) | " + " | ".join(row + [""] * len(anchor_heads)) + " |"
-            )
-        for a in cfg.anchors:
-            if task in a.scores:
-                at = _budget_of(cfg, task, a.budget)
-                cells_ = ["" for _ in heads] + ["" for _ in anchor_heads]
-                cells_[len(heads) + cfg.anchors.index(a)] = f"{a.scores[task]:g}" + (
-                    f" at {_k(at)}" if at else ""
-                )
-                lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
-        lines.append("")
-        if "paper" in budgets:
-            lines += [f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps.", ""]
+            for task in cfg.tasks:
+                series = [x for x in data.get(task, []) if x.variant in chosen]
+                if any(c.task == task and c.variant.name in chosen for c in cells):
+                    png = out_dir / f"{sec.name}_{task}.png"
+                    lines += _task_block(cfg, task, series, budgets, png, level="###")
+    else:
+        for task in cfg.tasks:
+            png = out_dir / f"{task}.png"
+            lines += _task_block(cfg, task, data.get(task, []), budgets, png, level="##")
 
     lines += ["## Aggregate", ""]
     for b in cfg.budgets or [cfg.steps]:

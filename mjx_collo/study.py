@@ -51,6 +51,8 @@ class Variant(_Strict):
     budget: Literal["steps", "paper"] = Field(
         "steps", description="train for the study's steps, or the paper's per-task budget only"
     )
+    tasks: list[str] | None = Field(None, description="the study's tasks this runs on (all)")
+    sections: list[str] = Field([], description="report sections that show this variant")
 
     @field_validator("name")
     @classmethod
@@ -73,6 +75,15 @@ class Anchor(_Strict):
     note: str = ""
 
 
+class Section(_Strict):
+    """A part of the report comparing some variants (an ablation: one of the paper's figures)."""
+
+    name: str
+    title: str
+    paper: str = Field("", description="the paper's finding, one sentence")
+    finding: str = Field("", description="ours, written once the cells have finished")
+
+
 class StudyConfig(_Strict):
     description: str = ""
     tasks: list[str]
@@ -85,6 +96,9 @@ class StudyConfig(_Strict):
     paper_budgets: dict[str, int] = Field({}, description="the paper's budget per task")
     anchors: list[Anchor] = []
     notes: list[str] = Field([], description="footnotes printed under the report's table")
+    sections: list[Section] = Field(
+        [], description="report sections (each shows the variants that name it); none: one table"
+    )
 
 
 class Cell(BaseModel):
@@ -130,6 +144,16 @@ def _check(path: Path, cfg: StudyConfig) -> None:
     names = [v.name for v in cfg.variants]
     if len(set(names)) != len(names):
         raise StudyError(f"{path}: variant names must be unique, got {names}")
+    sections = {sec.name for sec in cfg.sections}
+    for v in cfg.variants:
+        if v.tasks is not None and not set(v.tasks) <= set(cfg.tasks):
+            extra = sorted(set(v.tasks) - set(cfg.tasks))
+            raise StudyError(f"{path}: variant {v.name} names tasks {extra} the study lacks")
+        if set(v.sections) - sections:
+            unknown = sorted(set(v.sections) - sections)
+            raise StudyError(
+                f"{path}: variant {v.name} names sections {unknown}; define them under sections:"
+            )
     for task in cfg.tasks:
         try:
             envs.canonical(task)
@@ -147,6 +171,8 @@ def cells(cfg: StudyConfig) -> list[Cell]:
     out = []
     for task in cfg.tasks:
         for v in cfg.variants:
+            if v.tasks is not None and task not in v.tasks:
+                continue
             if v.budget == "paper":
                 if task not in cfg.paper_budgets:
                     raise StudyError(

@@ -151,3 +151,62 @@ def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
     mean, lo, hi = 60.0, 50.0, 70.0
     assert f"{mean:.0f} [{lo:.0f}, {hi:.0f}]" in line
     assert np.isclose(report._ci(np.array([50.0, 70.0]))[0], 60.0)
+
+
+def test_ablation_study_is_the_issue_grid():
+    """Seven sections on cheetah_run, 3 seeds x 50k; the plan objective on reacher_easy too; the
+    default runs once for all the sections that compare against it; discount is one sweep."""
+    _, cfg = study.load("ablations")
+    assert (cfg.seeds, cfg.steps) == (3, 50_000) and len(cfg.sections) == 7
+    cells = study.cells(cfg)
+    on = {t: {c.variant.name for c in cells if c.task == t} for t in cfg.tasks}
+    assert on["reacher_easy"] == {"default", "no_value", "end_bootstrap"}
+    for sec in cfg.sections:
+        names = {v.name for v in cfg.variants if sec.name in v.sections}
+        assert len(names & on["cheetah_run"]) >= (1 if sec.name == "discount" else 2), sec.name
+    assert sum(c.variant.name == "default" for c in cells) == 2  # once per task
+    sweep = next(v for v in cfg.variants if v.name == "discount").sweep
+    assert sweep == "value.gamma+planner.gamma=0.9,0.95,0.99"
+
+
+def test_a_study_with_sections_reports_each_with_its_variants(tmp_path):
+    path = _study_yaml(
+        tmp_path,
+        sections=[
+            {"name": "a", "title": "Section A", "paper": "The paper says A."},
+            {"name": "b", "title": "Section B", "finding": "B matters."},
+        ],
+        variants=[
+            {
+                "name": "collodreamer",
+                "method": "collodreamer",
+                "presets": ["debug"],
+                "sections": ["a", "b"],
+            },
+            {"name": "dreamer", "method": "dreamer", "presets": ["debug"], "sections": ["b"]},
+        ],
+    )
+    _, cfg = study.load(str(path))
+    for variant, r in (("collodreamer", 11.0), ("dreamer", 22.0)):
+        cell = tmp_path / "results" / "reacher_easy" / variant
+        cell.mkdir(parents=True)
+        rows = [
+            {"step": 800, "seed": s, "kind": k, "eval/return": r + s, "perf/wall_s": 1.0}
+            for s in (0, 1)
+            for k in ("train", "eval")
+        ]
+        (cell / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in rows) + "\n")
+    md = report.write("s", cfg, tmp_path / "results", tmp_path / "s.md").read_text()
+    a, b = md.split("## Section A")[1].split("## Section B")
+    assert "**The paper:** The paper says A." in a and "to be written" in a
+    assert "| collodreamer (n=2) |" in a and "| dreamer (n=2) |" not in a
+    assert "**Here:** B matters." in b and "| dreamer (n=2) |" in b
+    assert (tmp_path / "s" / "a_reacher_easy.png").exists()
+    with pytest.raises(study.StudyError, match="names sections"):
+        study.load(
+            str(
+                _study_yaml(
+                    tmp_path, variants=[{"name": "x", "method": "latco", "sections": ["nope"]}]
+                )
+            )
+        )
