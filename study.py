@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         cells = picked
 
     if args.action == "status":
-        for key, state in study.status(root, cfg).items():
+        for key, state in study.status(root, cfg, results).items():
             print(f"{key:<40s} {state}")
         return 0
     if args.action == "report":
@@ -131,6 +131,10 @@ def main(argv: list[str] | None = None) -> int:
         if study.is_finished(root, cell):
             study.collect(root, cell, results)
             print(f"[{i}/{len(cells)}] {cell.key}: finished, skipped")
+            continue
+        if study.recorded_finished(results, cell):
+            rec = results / cell.task / cell.variant.name
+            print(f"[{i}/{len(cells)}] {cell.key}: finished in the committed record {rec}, skipped")
             continue
         if args.max_cells is not None and trained >= args.max_cells:
             print(f"stopping after {trained} cell(s) (--max-cells)")

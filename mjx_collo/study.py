@@ -5,7 +5,10 @@ its cells one after another (the seeds of a cell vmapped in one program, by ``tr
 ``make report STUDY=<name>`` (:mod:`mjx_collo.report`) turns the cells' metrics into a report.
 
 Re-running a study resumes its unfinished cell and skips the finished ones: a cell is finished
-when its run directory holds a checkpoint at the cell's last env step. The resolved study config
+when its run directory holds a checkpoint at the cell's last env step, or when its committed record
+(``results/study/<name>/<task>/<variant>/``) holds the final evaluation of every run, trained with
+the cell's config. The second lets a study go on from a fresh clone or a wiped scratch disk
+without retraining what the repository already records. The resolved study config
 is stored in the study's root on its first run; a later run with a different config is refused,
 naming the keys that differ (a changed config would mix cells trained under two designs).
 
@@ -16,6 +19,7 @@ committed record the report reads.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -231,13 +235,48 @@ def is_finished(root: Path, cell: Cell) -> bool:
     return bool(steps) and steps[-1] >= cell.steps
 
 
-def status(root: Path, cfg: StudyConfig) -> dict[str, str]:
-    """Per cell key: ``finished``, ``partial (<step> env steps)`` or ``not started``."""
+def runs_per_cell(cell: Cell) -> int:
+    """Seeds x swept values: the runs one cell trains in one program."""
+    n = cell.seeds
+    if cell.variant.sweep:
+        for axis in cell.variant.sweep.replace(";", " ").split():
+            n *= len([v for v in axis.split("=", 1)[1].split(",") if v.strip()])
+    return n
+
+
+def recorded_finished(results: Path, cell: Cell) -> bool:
+    """The committed record of the cell holds every run's evaluation at the cell's last env step,
+    and was trained with the config the cell would train with now."""
+    d = Path(results) / cell.task / cell.variant.name
+    cfg_file, metrics = d / "config.yaml", d / "metrics.jsonl"
+    if not (cfg_file.exists() and metrics.exists()):
+        return False
+    try:
+        if yaml.safe_load(cfg_file.read_text()) != config_lib.to_dict(run_config(cell)):
+            return False
+    except yaml.YAMLError:
+        return False
+    final = 0
+    for line in metrics.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if row.get("kind") == "eval" and row.get("step", -1) >= cell.steps:
+            final += 1
+    return final >= runs_per_cell(cell)
+
+
+def status(root: Path, cfg: StudyConfig, results: Path | None = None) -> dict[str, str]:
+    """Per cell key: ``finished``, ``finished (committed record)``, ``partial (<step> env
+    steps)`` or ``not started``."""
     out = {}
     for cell in cells(cfg):
         steps = checkpoint_steps(cell_dir(root, cell))
         if steps and steps[-1] >= cell.steps:
             out[cell.key] = "finished"
+        elif results is not None and recorded_finished(results, cell):
+            out[cell.key] = "finished (committed record)"
         elif steps:
             out[cell.key] = f"partial ({steps[-1]} env steps)"
         else:
