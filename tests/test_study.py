@@ -121,6 +121,39 @@ def test_smoke_study_runs_resumes_without_retraining_and_reports(tmp_path):
     third = _study(["run", "--no-report"], tmp_path)
     assert third.returncode == 0 and third.stdout.count("finished, skipped") == 2
 
+    # The run directories wiped (a fresh clone, a cleaned scratch disk): the committed record
+    # says both cells finished, so nothing retrains.
+    import shutil
+
+    shutil.rmtree(tmp_path / "runs")
+    fourth = _study(["run", "--no-report"], tmp_path)
+    assert fourth.returncode == 0, fourth.stdout + fourth.stderr
+    assert fourth.stdout.count("finished in the committed record") == 2
+    assert not (tmp_path / "runs" / "reacher_easy").exists()
+
+
+def test_a_committed_record_counts_as_finished_only_when_whole_and_of_the_same_config(tmp_path):
+    _, cfg = study.load(str(SMOKE))
+    cell = study.cells(cfg)[0]
+    rec = tmp_path / cell.task / cell.variant.name
+    rec.mkdir(parents=True)
+    from mjx_collo import config as config_lib
+
+    config_lib.dump_yaml(study.run_config(cell), rec / "config.yaml")
+    rows = [
+        {"step": step, "seed": seed, "kind": "eval", "eval/return": 1.0}
+        for step in (cell.steps // 2, cell.steps)
+        for seed in range(cell.seeds)
+    ]
+    (rec / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows[:-1]) + "\n")
+    assert not study.recorded_finished(tmp_path, cell)  # one seed's final evaluation missing
+    (rec / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    assert study.recorded_finished(tmp_path, cell)
+    changed = yaml.safe_load((rec / "config.yaml").read_text())
+    changed["planner"]["iters"] += 1
+    (rec / "config.yaml").write_text(yaml.safe_dump(changed))
+    assert not study.recorded_finished(tmp_path, cell)  # trained under another config
+
 
 def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
     """One cell with two evaluations and the other missing: the report shows the first with
