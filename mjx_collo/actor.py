@@ -203,13 +203,32 @@ def actor_step(
     target: Any,
     starts: State,
     key: jax.Array,
+    bc: tuple[jax.Array, jax.Array, jax.Array] | None = None,
 ) -> tuple[ActorState, dict[str, jax.Array], dict[str, jax.Array]]:
     """The actor update alone, scored by the value ``target`` params: Dreamer's actor step, and
     the policy prior's (``planner.init: policy``), whose value is the planner's and learns its
-    own way (``value.mode``). Returns (actor state, the imagination's aux, metrics)."""
+    own way (``value.mode``). Returns (actor state, the imagination's aux, metrics).
+
+    ``bc`` (the policy prior only): ``(feat [N, F], action [N, A], mask [N])``, replay features
+    and the actions the agent took from them (the planner's, with exploration noise); the loss is
+    then ``actor.pg`` x Dreamer's objective + ``actor.bc`` x :func:`bc_loss`."""
     starts = jax.lax.stop_gradient(starts)
-    grad_fn = jax.value_and_grad(actor_loss, has_aux=True)
-    (loss, aux), grads = grad_fn(astate.params, cfg, model, wm_params, target, starts, key)
+    if bc is None:
+        grad_fn = jax.value_and_grad(actor_loss, has_aux=True)
+        (loss, aux), grads = grad_fn(astate.params, cfg, model, wm_params, target, starts, key)
+        extra = {}
+    else:
+        bc = jax.lax.stop_gradient(bc)
+
+        def prior_loss(params):
+            loss_pg, aux = actor_loss(params, cfg, model, wm_params, target, starts, key)
+            loss_bc = bc_loss(cfg.actor, params, *bc)
+            return cfg.actor.pg * loss_pg + cfg.actor.bc * loss_bc, (aux, loss_pg, loss_bc)
+
+        (loss, (aux, loss_pg, loss_bc)), grads = jax.value_and_grad(prior_loss, has_aux=True)(
+            astate.params
+        )
+        extra = {"actor/loss_dynamics": loss_pg, "actor/loss_bc": loss_bc}
     grads = grads["params"]
     tx = value_lib.make_optimizer(cfg.actor.optim)
     upd, opt_state = tx.update(grads, astate.opt_state, astate.params["params"])
@@ -225,8 +244,21 @@ def actor_step(
         "actor/entropy": jnp.mean(aux["entropy"]),
         "actor/grad_norm": optax.global_norm(grads),
         "actor/nonfinite": (~finite).astype(jnp.float32),
+        **extra,
     }
     return new_astate, aux, metrics
+
+
+def bc_loss(
+    cfg: ActorConfig, params: Any, feat: jax.Array, action: jax.Array, mask: jax.Array
+) -> jax.Array:
+    """Behaviour cloning of the planner: mean squared error between the policy's deterministic
+    action ``tanh(mean)`` and the action taken, over the ``mask``ed pairs. feat [N, F], action
+    [N, A], mask [N] -> []. (The squared error of the mode, not the log-likelihood: the taken
+    actions carry exploration noise, which the mean should average out, not learn as spread.)"""
+    pred = mode(cfg, params, feat, action.shape[-1])
+    err = jnp.mean(jnp.square(pred - action), axis=-1)
+    return jnp.sum(mask * err) / jnp.maximum(jnp.sum(mask), 1.0)
 
 
 def mode(cfg: ActorConfig, params: Any, feat: jax.Array, action_dim: int) -> jax.Array:

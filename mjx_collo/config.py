@@ -198,6 +198,8 @@ class ActorConfig(Section):
     min_std: float
     mean_scale: float
     entropy: float
+    pg: float
+    bc: float
     optim: OptimConfig
 
 
@@ -332,6 +334,8 @@ ADDED_KEYS: dict[str, Any] = {
     "run.eval_overlap": False,
     "wm.reward_head": "mse",
     "wm.reward_bins": 255,
+    "actor.pg": 1.0,
+    "actor.bc": 0.0,
 }
 
 
@@ -439,8 +443,13 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def float_keys(cfg: Config) -> list[str]:
-    """Dotted paths of every float leaf (the keys a sweep may vary within one compile)."""
-    return sorted(k for k, v in flatten(to_dict(cfg)).items() if isinstance(v, float))
+    """Dotted paths of every float leaf (the keys a sweep may vary within one compile), less the
+    policy prior's objective weights when the run has no prior (they would change nothing)."""
+    prior = cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
+    unused = set() if prior else {"actor.pg", "actor.bc"}
+    return sorted(
+        k for k, v in flatten(to_dict(cfg)).items() if isinstance(v, float) and k not in unused
+    )
 
 
 def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:

@@ -103,11 +103,22 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
             metrics.update(vm)
         if uses_prior:
             # Dreamer's actor objective through the model, on the planner's own value (its target
-            # params); the value keeps learning its own way (value.mode)
+            # params; weight actor.pg), and behaviour cloning of the planner's actions (actor.bc);
+            # the value keeps learning its own way (value.mode)
             starts = actor_lib.flatten_starts(post.state, 2)
             imag = wm_lib.imagination_model(c.wm)
             k_a = jax.random.fold_in(k_v, 1)
-            astate, _, am = actor_lib.actor_step(c, imag, wm, astate, vstate.target, starts, k_a)
+            # behaviour cloning pairs: the posterior at t and the action taken from it (stored
+            # with the next row), unless an episode starts there
+            feat = jax.lax.stop_gradient(post.feat[:, :-1])
+            bc = (
+                feat.reshape(-1, feat.shape[-1]),
+                batch["action"][:, 1:].reshape(-1, batch["action"].shape[-1]),
+                (~batch["is_first"][:, 1:]).reshape(-1).astype(jnp.float32),
+            )
+            astate, _, am = actor_lib.actor_step(
+                c, imag, wm, astate, vstate.target, starts, k_a, bc=bc
+            )
             metrics.update(am)
         bad = wm_m["nonfinite"] > 0
         streak = jnp.where(bad, s.nonfinite_streak + 1, 0)

@@ -252,9 +252,10 @@ def recorded_finished(results: Path, cell: Cell) -> bool:
     if not (cfg_file.exists() and metrics.exists()):
         return False
     try:
-        if yaml.safe_load(cfg_file.read_text()) != config_lib.to_dict(run_config(cell)):
+        saved = config_lib.build(config_lib.complete_saved(yaml.safe_load(cfg_file.read_text())))
+        if config_lib.to_dict(saved) != config_lib.to_dict(run_config(cell)):
             return False
-    except yaml.YAMLError:
+    except (yaml.YAMLError, config_lib.ConfigError, AttributeError, TypeError):
         return False
     final = 0
     for line in metrics.read_text().splitlines():

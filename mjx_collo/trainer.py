@@ -133,6 +133,12 @@ def make_train(cfg: Config, env) -> Trainer:
                 f"planner.init={cfg.planner.init} trains its policy prior on the value's returns: "
                 "it needs value.enabled=true"
             )
+    elif cfg.actor.pg != 1.0 or cfg.actor.bc != 0.0:
+        raise ConfigError(
+            "actor.pg and actor.bc weight the policy prior's objectives, and this run has no "
+            f"prior (planner.init={cfg.planner.init}): set planner.init=policy or policy_cem, or "
+            "leave actor.pg=1.0 actor.bc=0.0"
+        )
     agent = agent_lib.make_agent(cfg, action_dim)
 
     def bind(hyper: dict[str, jax.Array]) -> tuple[Config, agent_lib.Agent]:

@@ -143,3 +143,46 @@ def test_the_policy_prior_learns_the_optimum_and_collocation_from_it_needs_few_i
     assert costs[2] > 50 * costs[0] and costs[3] > 50 * costs[1]  # noise: far from it
     assert costs[4] < costs[2] / 2  # collocation from noise does get closer, slowly:
     assert costs[4] > costs[1]  # 400 iterations from noise are still behind 5 from the prior
+
+
+def test_behaviour_cloning_alone_learns_the_planners_actions():
+    """``actor.pg=0 actor.bc=1``: the prior's update ignores the imagined returns and fits the
+    actions the agent took (here the optimal ones, with exploration noise) from their features;
+    with ``actor.bc=0`` the same update does not fit them."""
+    imag = ImaginationModel(
+        img_step=lambda p, s, a, k: s @ F.T + a @ G.T,
+        get_feat=lambda s: s,
+        reward=lambda p, f: 0.0 * f[..., 0],  # no reward: only the cloning term can teach
+    )
+
+    def train(cfg):
+        astate = actor_lib.init_actor(cfg.actor, jax.random.PRNGKey(0), 2, 2)
+        target = jax.tree.map(
+            jnp.zeros_like, value_lib.init_value(cfg.value, jax.random.PRNGKey(1), 2).target
+        )
+
+        @jax.jit
+        def step(astate, key):
+            ks, kn, ka = jax.random.split(key, 3)
+            feat = 0.25 * jax.random.normal(ks, (64, 2))
+            taken = jnp.clip(optimal_action(feat) + 0.3 * jax.random.normal(kn, (64, 2)), -1, 1)
+            mask = jnp.ones(64).at[:8].set(0.0)  # episode starts: no pair
+            taken = taken.at[:8].set(1.0)  # what a masked pair holds must not be learned
+            bc = (feat, taken, mask)
+            astate, _, m = actor_lib.actor_step(cfg, imag, None, astate, target, feat, ka, bc=bc)
+            return astate, m
+
+        for i in range(800):
+            astate, m = step(astate, jax.random.PRNGKey(100 + i))
+        zs = 0.25 * jax.random.normal(jax.random.PRNGKey(4), (512, 2))
+        a_star = optimal_action(zs)
+        # away from the bounds, where clipping the noisy actions does not bias their mean
+        inside = jnp.max(jnp.abs(a_star), -1) < 0.5
+        err = jnp.abs(actor_lib.mode(cfg.actor, astate.params, zs, 2) - a_star)
+        return float(jnp.max(jnp.where(inside[:, None], err, 0.0))), m
+
+    err_bc, m = train(_cfg("planner.init=policy", "actor.pg=0.0", "actor.bc=1.0"))
+    err_none, _ = train(_cfg("planner.init=policy", "actor.pg=0.0", "actor.bc=0.0"))
+    assert float(m["actor/loss_bc"]) < 0.15  # the noise's own variance (0.09) plus clipping
+    assert err_bc < 0.1, err_bc
+    assert err_none > 3 * err_bc, (err_none, err_bc)

@@ -264,6 +264,11 @@ def test_config_inconsistency_names_the_fix():
         trainer.make_train(debug_cfg("cem", overrides=["planner.init=policy"]), env)
     with pytest.raises(config.ConfigError, match="needs value.enabled=true"):
         trainer.make_train(debug_cfg(overrides=["planner.init=policy", "value.enabled=false"]), env)
+    with pytest.raises(config.ConfigError, match="set planner.init=policy or policy_cem"):
+        trainer.make_train(debug_cfg(overrides=["actor.bc=1.0"]), env)  # would change nothing
+    with pytest.raises(config.ConfigError, match="cannot sweep 'actor.bc'"):
+        config.parse_sweep("actor.bc=0,1", debug_cfg())
+    assert "actor.bc" in config.float_keys(debug_cfg(overrides=["planner.init=policy"]))
 
 
 def test_task_overlay_sits_between_the_method_and_the_users_overrides():
