@@ -200,6 +200,7 @@ class ActorConfig(Section):
     entropy: float
     pg: float
     bc: float
+    starts: int
     optim: OptimConfig
 
 
@@ -336,6 +337,7 @@ ADDED_KEYS: dict[str, Any] = {
     "wm.reward_bins": 255,
     "actor.pg": 1.0,
     "actor.bc": 0.0,
+    "actor.starts": 0,
 }
 
 

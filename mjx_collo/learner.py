@@ -106,8 +106,15 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
             # params; weight actor.pg), and behaviour cloning of the planner's actions (actor.bc);
             # the value keeps learning its own way (value.mode)
             starts = actor_lib.flatten_starts(post.state, 2)
-            imag = wm_lib.imagination_model(c.wm)
             k_a = jax.random.fold_in(k_v, 1)
+            if 0 < cfg.actor.starts < cfg.replay.batch * cfg.replay.length:
+                # a random subset of the posteriors starts the imagination: its cost is the
+                # update's largest part (all 800: ~9x the world-model update's FLOPs)
+                pick = jax.random.permutation(
+                    jax.random.fold_in(k_a, 1), jax.tree.leaves(starts)[0].shape[0]
+                )[: cfg.actor.starts]
+                starts = jax.tree.map(lambda x: x[pick], starts)
+            imag = wm_lib.imagination_model(c.wm)
             # behaviour cloning pairs: the posterior at t and the action taken from it (stored
             # with the next row), unless an episode starts there
             feat = jax.lax.stop_gradient(post.feat[:, :-1])

@@ -133,11 +133,16 @@ def make_train(cfg: Config, env) -> Trainer:
                 f"planner.init={cfg.planner.init} trains its policy prior on the value's returns: "
                 "it needs value.enabled=true"
             )
-    elif cfg.actor.pg != 1.0 or cfg.actor.bc != 0.0:
+        if cfg.actor.starts < 0:
+            raise ConfigError(
+                f"actor.starts={cfg.actor.starts}: the prior's imagination starts per update must "
+                "be >= 0 (0: every replay posterior)"
+            )
+    elif cfg.actor.pg != 1.0 or cfg.actor.bc != 0.0 or cfg.actor.starts != 0:
         raise ConfigError(
-            "actor.pg and actor.bc weight the policy prior's objectives, and this run has no "
-            f"prior (planner.init={cfg.planner.init}): set planner.init=policy or policy_cem, or "
-            "leave actor.pg=1.0 actor.bc=0.0"
+            "actor.pg, actor.bc and actor.starts set how the policy prior trains, and this run has "
+            f"no prior (planner.init={cfg.planner.init}): set planner.init=policy or policy_cem, "
+            "or leave actor.pg=1.0 actor.bc=0.0 actor.starts=0"
         )
     agent = agent_lib.make_agent(cfg, action_dim)
 

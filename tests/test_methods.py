@@ -47,8 +47,8 @@ ABLATION_VARIANTS = {
     [(m, []) for m in METHODS]
     + [("collodreamer", v) for v in ABLATION_VARIANTS.values()]
     + [
-        pytest.param("collodreamer", [f"planner.init={init}"], marks=pytest.mark.slow)
-        for init in ("policy", "policy_cem")
+        pytest.param("collodreamer", [f"planner.init={init}", *extra], marks=pytest.mark.slow)
+        for init, extra in (("policy", ["actor.bc=1.0", "actor.starts=64"]), ("policy_cem", []))
     ],
     ids=METHODS + list(ABLATION_VARIANTS) + ["policy_prior", "policy_prior_cem"],
 )

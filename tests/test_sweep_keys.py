@@ -19,7 +19,7 @@ PATHS = {
     "latco": ("latco", [], {}),
     "cem": ("cem", [], {}),
     "mppi_value": ("mppi_value", [], {}),
-    "policy_prior": ("collodreamer", ["planner.init=policy_cem"], {}),
+    "policy_prior": ("collodreamer", ["planner.init=policy_cem", "actor.starts=64"], {}),
     "gauss_newton+refine": (
         "collodreamer",
         ["planner.solver=gauss_newton", "planner.refine_iters=2", "planner.value_lambda=1.0"],

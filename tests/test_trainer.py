@@ -266,6 +266,10 @@ def test_config_inconsistency_names_the_fix():
         trainer.make_train(debug_cfg(overrides=["planner.init=policy", "value.enabled=false"]), env)
     with pytest.raises(config.ConfigError, match="set planner.init=policy or policy_cem"):
         trainer.make_train(debug_cfg(overrides=["actor.bc=1.0"]), env)  # would change nothing
+    with pytest.raises(config.ConfigError, match="set planner.init=policy or policy_cem"):
+        trainer.make_train(debug_cfg(overrides=["actor.starts=64"]), env)
+    with pytest.raises(config.ConfigError, match="must be >= 0"):
+        trainer.make_train(debug_cfg(overrides=["planner.init=policy", "actor.starts=-1"]), env)
     with pytest.raises(config.ConfigError, match="cannot sweep 'actor.bc'"):
         config.parse_sweep("actor.bc=0,1", debug_cfg())
     assert "actor.bc" in config.float_keys(debug_cfg(overrides=["planner.init=policy"]))
