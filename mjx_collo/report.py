@@ -229,26 +229,26 @@ def _task_block(
     _plot_curves(task, series, png)
     lines = [f"{level} {task}", "", f"![{task}]({png.parent.name}/{png.name})", ""]
     heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
-    anchor_heads = [a.name for a in cfg.anchors]
-    lines += [
-        "| variant | " + " | ".join(heads + anchor_heads) + " |",
-        "|---" * (1 + len(heads) + len(anchor_heads)) + "|",
-    ]
+    lines += ["| variant | " + " | ".join(heads) + " |", "|---" * (1 + len(heads)) + "|"]
     for s in series:
         row = [
             _fmt(s.at(b)) if (b := _budget_of(cfg, task, x)) is not None else "—" for x in budgets
         ]
-        lines.append(
-            f"| {s.label} (n={s.runs}) | " + " | ".join(row + [""] * len(anchor_heads)) + " |"
-        )
+        lines.append(f"| {s.label} (n={s.runs}) | " + " | ".join(row) + " |")
+    # published anchors: a row each, the score in the column of the budget it was reported at
+    # (or, at a budget the table lacks, in the first column with that budget named)
     for a in cfg.anchors:
-        if task in a.scores:
-            at = _budget_of(cfg, task, a.budget)
-            cells_ = ["" for _ in heads] + ["" for _ in anchor_heads]
-            cells_[len(heads) + cfg.anchors.index(a)] = f"{a.scores[task]:g}" + (
-                f" at {_k(at)}" if at else ""
-            )
-            lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
+        if task not in a.scores:
+            continue
+        cells_ = ["" for _ in heads]
+        score = f"{a.scores[task]:g}"
+        at = _budget_of(cfg, task, a.budget)
+        cols = [i for i, x in enumerate(budgets) if _budget_of(cfg, task, x) == at]
+        if cols:
+            cells_[cols[0]] = score
+        else:
+            cells_[0] = f"{score} (at {_k(at)})" if at else score
+        lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
     lines.append("")
     if "paper" in budgets:
         lines += [f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps.", ""]

@@ -183,6 +183,7 @@ def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
     line = next(x for x in md.splitlines() if x.startswith("| collodreamer (n=2) |"))
     mean, lo, hi = 60.0, 50.0, 70.0
     assert f"{mean:.0f} [{lo:.0f}, {hi:.0f}]" in line
+    assert "| *random policy* | 43.1 |" in md  # an anchor: a row, in its budget's column
     assert np.isclose(report._ci(np.array([50.0, 70.0]))[0], 60.0)
 
 
