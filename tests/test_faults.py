@@ -128,7 +128,12 @@ def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
     session.lock_run_dir(tmp_path / "r").close()  # taken over
 
 
-@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+@pytest.mark.parametrize(
+    "sig, code",
+    # one handler serves both; SIGINT (a compile and a chunk, ~40 s) runs in the slow suite to
+    # keep `make test` under its 15 minutes
+    [pytest.param("SIGINT", 130, marks=pytest.mark.slow), ("SIGTERM", 143)],
+)
 def test_an_interrupted_run_saves_and_exits_128_plus_the_signal(tmp_path, sig, code):
     """Before: a run stopped by SIGINT or SIGTERM saved its checkpoint and exited 0, like a run
     that finished, so a scheduler could not tell it to requeue the job."""
