@@ -13,6 +13,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from mjx_collo import actor as actor_lib
+from mjx_collo import config as config_lib
 from mjx_collo import planner as planner_lib
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm_lib
@@ -64,10 +65,7 @@ def value_bootstrap(cfg: Config) -> bool:
     )
 
 
-def uses_prior(cfg: Config) -> bool:
-    """Whether the planner starts from a learned policy prior (``planner.init: policy`` or
-    ``policy_cem``): an actor network trained beside the world model (docs/ALGORITHM.md §4.10)."""
-    return cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
+uses_prior = config_lib.uses_prior  # re-exported: the trainer's modules ask the agent
 
 
 def make_agent(cfg: Config, action_dim: int) -> Agent:

@@ -444,11 +444,16 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 # --------------------------------------------------------------------------------------------
 
 
+def uses_prior(cfg: Config) -> bool:
+    """Whether the planner starts from a learned policy prior (``planner.init: policy`` or
+    ``policy_cem``): an actor network trained beside the world model (docs/ALGORITHM.md §4.10)."""
+    return cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
+
+
 def float_keys(cfg: Config) -> list[str]:
     """Dotted paths of every float leaf (the keys a sweep may vary within one compile), less the
     policy prior's objective weights when the run has no prior (they would change nothing)."""
-    prior = cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
-    unused = set() if prior else {"actor.pg", "actor.bc"}
+    unused = set() if uses_prior(cfg) else {"actor.pg", "actor.bc"}
     return sorted(
         k for k, v in flatten(to_dict(cfg)).items() if isinstance(v, float) and k not in unused
     )

@@ -123,9 +123,19 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
                 batch["action"][:, 1:].reshape(-1, batch["action"].shape[-1]),
                 (~batch["is_first"][:, 1:]).reshape(-1).astype(jnp.float32),
             )
-            astate, _, am = actor_lib.actor_step(
-                c, imag, wm, astate, vstate.target, starts, k_a, bc=bc
+            # the weights are (1, 0) unless set or swept: then skip the cloning term's cost
+            # (~10% of the prior's update; forward only, as a metric); 1 x loss + 0 x clone is the same
+            # update bit for bit
+            weighted = (
+                cfg.actor.pg != 1.0
+                or cfg.actor.bc != 0.0
+                or bool({"actor.pg", "actor.bc"} & set(s.hyper))
             )
+            astate, _, am = actor_lib.actor_step(
+                c, imag, wm, astate, vstate.target, starts, k_a, bc=bc if weighted else None
+            )
+            if not weighted:  # still report how far the planner's actions are from the prior's
+                am["actor/loss_bc"] = actor_lib.bc_loss(c.actor, astate.params, *bc)
             metrics.update(am)
         bad = wm_m["nonfinite"] > 0
         streak = jnp.where(bad, s.nonfinite_streak + 1, 0)

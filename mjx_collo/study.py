@@ -239,8 +239,8 @@ def runs_per_cell(cell: Cell) -> int:
     """Seeds x swept values: the runs one cell trains in one program."""
     n = cell.seeds
     if cell.variant.sweep:
-        for axis in cell.variant.sweep.replace(";", " ").split():
-            n *= len([v for v in axis.split("=", 1)[1].split(",") if v.strip()])
+        for values in config_lib.parse_sweep(cell.variant.sweep, run_config(cell)).values():
+            n *= len(values)
     return n
 
 
