@@ -29,7 +29,8 @@ TEST_WORKERS ?= 2
 # Quiet noisy deprecation chatter from dependencies.
 export PYTHONWARNINGS ?= ignore::DeprecationWarning
 
-.PHONY: install train sweep eval combine study report test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
+# preview: our frames beside MuJoCo's render of the same states (ENV=<task> or ENV=all), in preview/.
+.PHONY: gl preview bench-render install train sweep eval combine study report test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
 
 install: $(STAMP)
 
@@ -63,12 +64,23 @@ study: install
 report: install
 	$(PY) study.py report $(STUDY) $(ARGS)
 
+# MuJoCo's own renderer, the reference the render tests and `make preview` compare our frames with,
+# needs OpenGL without a screen: Debian's libosmesa6. Best effort: where it cannot be installed
+# (not root, no apt), those checks skip and say why.
+gl:
+	@ldconfig -p 2>/dev/null | grep -q libOSMesa || { command -v apt-get >/dev/null && [ "$$(id -u)" = 0 ] \
+	  && { apt-get install -y -qq libosmesa6 >/dev/null 2>&1 || { apt-get update -qq && apt-get install -y -qq libosmesa6 >/dev/null; }; } \
+	  || echo "note: libosmesa6 not installed; checks against MuJoCo's renderer will skip"; }
+
+preview: install gl
+	MUJOCO_GL=$${MUJOCO_GL:-osmesa} $(PY) -m envs.reference $(ENV) --out preview $(ARGS)
+
 # The CI suite: everything not marked slow (< 15 min on 2 cores).
-test: install
+test: install gl
 	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "not slow" $(PYTEST_ARGS)
 
 # Everything, including the statistical env-parity, learning and multi-process tests.
-test-all: install
+test-all: install gl
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: install
@@ -84,6 +96,9 @@ bench-envs: install
 
 bench-model: install
 	$(PY) benchmarks/bench_model.py $(ARGS)
+
+bench-render: install
+	$(PY) benchmarks/bench_render.py $(ARGS)
 
 bench-planner: install
 	$(PY) benchmarks/bench_planner.py $(ARGS)

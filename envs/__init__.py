@@ -26,7 +26,13 @@ from brax.envs.base import Env  # noqa: E402
 
 from envs import cheetah, quadruped, reacher, walker  # noqa: E402
 from envs.base import PHYSICS, MjxTask  # noqa: E402
-from envs.wrappers import AutoResetWrapper, EpisodeWrapper, NormalizeActions, VmapWrapper  # noqa: E402
+from envs.wrappers import (  # noqa: E402
+    AutoResetWrapper,
+    EpisodeWrapper,
+    NormalizeActions,
+    PixelObs,
+    VmapWrapper,
+)
 
 _TASKS: dict[str, Callable[..., MjxTask]] = {
     "cheetah_run": cheetah.CheetahRun,
@@ -50,9 +56,13 @@ _OVERRIDES = {
     "action_repeat": "repeat each action N env steps, rewards summed (wraps EpisodeWrapper)",
     "episode_length": "episode limit in env steps (truncation); default 1000 when wrapping",
     "normalize_actions": "map actions in [-1, 1] to the actuator range",
+    "obs": "'state' (default: the task's state vector) or 'pixels' (64x64 RGB uint8, PixelObs)",
     "num_envs": "batch of N envs (VmapWrapper)",
     "auto_reset": "fresh random reset when an episode ends (needs num_envs)",
 }
+
+
+OBS = ("state", "pixels")
 
 
 class UnknownTaskError(ValueError):
@@ -91,6 +101,11 @@ def make(name: str, **overrides) -> Env:
     repeat, limit = overrides.get("action_repeat"), overrides.get("episode_length")
     if repeat is not None or limit is not None:
         env = EpisodeWrapper(env, episode_length=limit or 1000, action_repeat=repeat or 1)
+    obs = overrides.get("obs", "state")
+    if obs not in OBS:
+        raise ValueError(f"unknown obs {obs!r}; choose one of {OBS}")
+    if obs == "pixels":
+        env = PixelObs(env)
     num_envs = overrides.get("num_envs")
     if num_envs is not None:
         env = VmapWrapper(env, num_envs)
@@ -107,6 +122,8 @@ __all__ = [
     "EpisodeWrapper",
     "MjxTask",
     "NormalizeActions",
+    "OBS",
+    "PixelObs",
     "UnknownTaskError",
     "VmapWrapper",
     "canonical",
@@ -118,11 +135,13 @@ __all__ = [
 def from_config(env_cfg) -> Env:
     """The task of a config's ``env`` section as the trainer drives it: action repeat, episode
     limit, actions in [-1, 1], the configured physics options. ``env_cfg`` is any object with
-    ``task``, ``action_repeat``, ``episode_env_steps`` and ``physics`` (``mjx_collo.config.EnvConfig``)."""
+    ``task``, ``action_repeat``, ``episode_env_steps``, ``physics`` and ``obs``
+    (``mjx_collo.config.EnvConfig``)."""
     return make(
         env_cfg.task,
         action_repeat=env_cfg.action_repeat,
         episode_length=env_cfg.episode_env_steps,
         normalize_actions=True,
         physics=env_cfg.physics,
+        obs=getattr(env_cfg, "obs", "state"),
     )

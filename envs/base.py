@@ -284,6 +284,12 @@ class MjxTask(Env):
             metrics=metrics,
         )
 
+    def render_geom_xpos(self, data: mjx.Data, info: dict) -> jax.Array:
+        """Geom positions to draw (``envs.render``): the physics' own, unless the task keeps part of
+        its scene outside the model (reacher's target)."""
+        del info
+        return data.geom_xpos
+
     # ---- subclass hooks ---------------------------------------------------------------------
 
     def _initial(self, key: jax.Array):

@@ -41,6 +41,7 @@ class Reacher(base.MjxTask):
         self.name = name
         self.target_size = target_size
         self._finger = base.obj_id(m, "geom", "finger")
+        self._target = base.obj_id(m, "geom", "target")
 
     def _task_info(self, target_xy=None):
         if target_xy is None:
@@ -58,6 +59,9 @@ class Reacher(base.MjxTask):
 
     def _to_target(self, data, info):
         return info["target_xy"] - data.geom_xpos[self._finger, :2]
+
+    def render_geom_xpos(self, data, info):
+        return data.geom_xpos.at[self._target, :2].set(info["target_xy"])
 
     def _observe(self, data, info):
         return jnp.concatenate([data.qpos, self._to_target(data, info), data.qvel]).astype(

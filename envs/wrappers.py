@@ -1,5 +1,5 @@
 """Training wrappers over brax ``Env``: episode limit + action repeat, action normalisation,
-batched vmap, and auto-reset with a fresh random reset per episode.
+camera images as observations, batched vmap, and auto-reset with a fresh random reset per episode.
 
 brax's own ``AutoResetWrapper`` restarts every finished env from one cached first state (fine for
 brax's agents, wrong for ours); here a finished env gets ``env.reset`` with a new key.
@@ -74,6 +74,47 @@ class NormalizeActions(Wrapper):
     def step(self, state: State, action: jax.Array) -> State:
         a = jnp.clip(action, -1.0, 1.0)
         return self.env.step(state, self._low + (a + 1.0) * 0.5 * (self._high - self._low))
+
+
+class PixelObs(Wrapper):
+    """The observation becomes the task's benchmark camera image, ``uint8 [size, size, 3]``.
+
+    Rendered by ``envs.render`` from the physics state once per agent step (after the action repeat:
+    wrap ``EpisodeWrapper``, not the bare task) and at reset, inside whatever program steps the env.
+    The state vector the task observes is kept in ``info["state_obs"]`` (the inner wrappers step on it;
+    metrics and debugging read it). A step whose physics went non-finite shows a black frame.
+    """
+
+    def __init__(self, env: Env, size: int = 64):
+        super().__init__(env)
+        from envs import render
+
+        self._bare = env.unwrapped
+        self.size = int(size)
+        self._scene = render.make_scene(
+            self._bare.mj_model, self.size, self.size, render.camera_for(self._bare)
+        )
+        self._render_data = render.render_data
+
+    @property
+    def observation_size(self) -> tuple[int, int, int]:
+        return (self.size, self.size, 3)
+
+    def _observe(self, state: State) -> State:
+        d = state.pipeline_state
+        image = self._render_data(self._scene, d, self._bare.render_geom_xpos(d, state.info))
+        image = jnp.where(state.metrics["nan"] > 0, jnp.zeros_like(image), image)
+        info = dict(state.info)
+        info["state_obs"] = state.obs
+        return state.replace(obs=image, info=info)
+
+    def reset(self, rng: jax.Array) -> State:
+        return self._observe(self.env.reset(rng))
+
+    def step(self, state: State, action: jax.Array) -> State:
+        info = dict(state.info)
+        inner = state.replace(obs=info.pop("state_obs"), info=info)
+        return self._observe(self.env.step(inner, action))
 
 
 class VmapWrapper(Wrapper):

@@ -42,6 +42,7 @@ class EnvConfig(Section):
     action_repeat: int
     episode_env_steps: int
     physics: Literal["tuned", "dmc"]
+    obs: Literal["state", "pixels"]
 
 
 Positive = Annotated[int, Field(gt=0)]
@@ -338,6 +339,7 @@ ADDED_KEYS: dict[str, Any] = {
     "actor.pg": 1.0,
     "actor.bc": 0.0,
     "actor.starts": 0,
+    "env.obs": "state",
 }
 
 

@@ -72,7 +72,7 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
             c.replay,
             num_envs,
             c.env.action_repeat,
-            replay_lib.default_fields(obs_shape, action_dim),
+            replay_lib.default_fields(obs_shape, action_dim, env_state.obs.dtype),
         )
         return env_state, carry, replay_lib.add(replay, first_row(env_state.obs))
 

@@ -107,7 +107,10 @@ def make_train(cfg: Config, env) -> Trainer:
     episode_len = cfg.env.episode_env_steps // cfg.env.action_repeat
     iterations = run.chunk_env_steps // per_iter
     action_dim = int(env.action_size)
-    obs_shape = (int(env.observation_size),)
+    obs_spec = jax.eval_shape(
+        env.reset, jax.random.PRNGKey(0)
+    ).obs  # [obs] float32 or [64, 64, 3] uint8
+    obs_shape = tuple(obs_spec.shape)
     uses_actor = cfg.planner.kind == "dreamer"
     value_mode = cfg.value.mode if cfg.value.enabled and not uses_actor else "none"
     if cfg.j_latent.enabled and not cfg.value.enabled:
