@@ -51,13 +51,42 @@ def _dot_flops(eqn: Any) -> float:
     return 2.0 * math.prod(out) * math.prod(lhs[d] for d in lc)
 
 
+def _window_hits(n: int, lhs_dil: int, lo: int, k: int, rhs_dil: int, stride: int, o: int) -> int:
+    """(output position, kernel tap) pairs of one spatial dim whose input is a real element, not
+    padding or a zero inserted by input dilation."""
+    last = (n - 1) * lhs_dil
+    hits = 0
+    for out in range(o):
+        for tap in range(k):
+            pos = out * stride + tap * rhs_dil - lo
+            hits += 0 <= pos <= last and pos % lhs_dil == 0
+    return hits
+
+
 def _conv_flops(eqn: Any) -> float:
+    """Multiply-adds x 2 that touch real input: a transposed conv (the input gradient of a strided
+    one) is not charged for the zeros it inserts, nor any conv for its padding."""
+    lhs = eqn.invars[0].aval.shape
     rhs = eqn.invars[1].aval.shape
     out = eqn.outvars[0].aval.shape
-    dn = eqn.params["dimension_numbers"]
-    out_feat = rhs[dn.rhs_spec[0]]
-    # every output element: (in_features / groups) x kernel window multiply-adds
-    return 2.0 * math.prod(out) * math.prod(rhs) / out_feat
+    p = eqn.params
+    dn = p["dimension_numbers"]
+    spatial = len(dn.lhs_spec) - 2
+    lhs_dil = p.get("lhs_dilation") or (1,) * spatial
+    rhs_dil = p.get("rhs_dilation") or (1,) * spatial
+    taps = 1
+    for i in range(spatial):
+        taps *= _window_hits(
+            lhs[dn.lhs_spec[2 + i]],
+            lhs_dil[i],
+            p["padding"][i][0],
+            rhs[dn.rhs_spec[2 + i]],
+            rhs_dil[i],
+            p["window_strides"][i],
+            out[dn.out_spec[2 + i]],
+        )
+    # per (output batch, output feature): in_features / groups x the taps that hit input
+    return 2.0 * out[dn.out_spec[0]] * out[dn.out_spec[1]] * rhs[dn.rhs_spec[1]] * taps
 
 
 def _as_jaxpr(x: Any) -> Any:

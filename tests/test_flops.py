@@ -73,6 +73,18 @@ def test_convolution_flops():
     )
     out = jax.eval_shape(f, x, k).shape  # [2, 3, 3, 5]
     assert matmul_flops(f, x, k).flops == 2 * np.prod(out) * 4 * 4 * 3
+    # The input gradient of a strided conv (a transposed conv: input dilated by the stride) does
+    # the conv's multiply-adds again, not stride^2 times them (the zeros it inserts are not work).
+    # Forward + input gradient = 2 x forward, exactly; + kernel gradient = 3 x.
+    conv = matmul_flops(f, x, k).flops
+    grad_x = lambda x, k: jax.grad(lambda x: f(x, k).sum())(x)  # noqa: E731
+    assert matmul_flops(grad_x, x, k).flops == 2 * conv
+    grad_k = lambda x, k: jax.grad(lambda k: f(x, k).sum())(k)  # noqa: E731
+    assert matmul_flops(grad_k, x, k).flops == 2 * conv
+    same = lambda x, k: jax.lax.conv_general_dilated(  # noqa: E731  (padding is not work)
+        x, k, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
+    assert matmul_flops(same, x, k).flops < 2 * 2 * 9 * 9 * 5 * 4 * 4 * 3
 
 
 def _plan_flops(*overrides: str) -> float:
