@@ -2,7 +2,8 @@
 
 Deterministic episodes (no exploration noise) per seed with the saved parameters — the replay is
 not loaded. Prints a table of mean ± std return, writes ``eval_<step>.json`` (and with ``--video`` a GIF of
-one episode per seed, rendered on the CPU) next to the checkpoints.
+one episode per seed, rendered on the CPU) next to the checkpoints. For a pixel run (``env.obs=pixels``)
+the video also comes as ``eval_<step>_run<i>_agent.gif``: the 64x64 frames the agent saw.
 """
 
 from __future__ import annotations
@@ -106,21 +107,28 @@ def main(argv=None) -> int:
         from envs import render
 
         videos = []
+        sizes = [("", args.size)]
+        if cfg.env.obs == "pixels":  # what the agent saw: the observation camera at its size
+            sizes.append(("_agent", env.size))  # env is envs.PixelObs
         for i in range(n):
             target = out.get("target_xy")
-            frames = render.render_episode(
-                env.unwrapped,
-                np.asarray(out["qpos"][i]),
-                None if target is None else np.asarray(target[i]),
-                args.size,
-                args.size,
-            )
-            path = out_dir / f"eval_{step}_run{i}.gif"
-            imageio.mimsave(
-                path, list(frames), duration=1000 * env.unwrapped.dt * cfg.env.action_repeat, loop=0
-            )
-            videos.append(str(path))
-            print(f"video: {path}")
+            for suffix, size in sizes:
+                frames = render.render_episode(
+                    env.unwrapped,
+                    np.asarray(out["qpos"][i]),
+                    None if target is None else np.asarray(target[i]),
+                    size,
+                    size,
+                )
+                path = out_dir / f"eval_{step}_run{i}{suffix}.gif"
+                imageio.mimsave(
+                    path,
+                    list(frames),
+                    duration=1000 * env.unwrapped.dt * cfg.env.action_repeat,
+                    loop=0,
+                )
+                videos.append(str(path))
+                print(f"video: {path}")
         result["videos"] = videos
     # one file per checkpoint step: evaluating another checkpoint does not overwrite this one
     path = out_dir / f"eval_{step}.json"

@@ -57,3 +57,28 @@ def test_a_bad_obs_value_fails_with_one_line():
         config.load(overrides=["env.obs=rgb"])
     msg = str(e.value)
     assert "env.obs" in msg and "pixels" in msg and "\n" not in msg.strip()
+
+
+@pytest.mark.slow
+def test_eval_video_of_a_pixel_run_also_shows_what_the_agent_saw(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import imageio.v3 as iio
+
+    cfg, res, _, _ = _one_chunk("cheetah_run", tmp_path)
+    root = Path(__file__).resolve().parent.parent
+    out = subprocess.run(
+        [sys.executable, "evaluate.py", "--ckpt", str(res.run_dir), "--episodes", "1", "--video"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    step = cfg.run.chunk_env_steps
+    agent = iio.imread(res.run_dir / f"eval_{step}_run0_agent.gif")
+    video = iio.imread(res.run_dir / f"eval_{step}_run0.gif")
+    assert agent.shape[1:3] == (64, 64) and video.shape[1:3] == (128, 128)
+    assert len(agent) == len(video) > 1
