@@ -353,6 +353,8 @@ class Run:
         since the next chunk takes the state's buffers) and the episodes run in a thread while
         the caller goes on; otherwise they run here and the future is already done."""
         key = jax.vmap(lambda k: jax.random.fold_in(k, env_steps))(self.keys)
+        # Episodes read the networks, not the replay: not copied (frames of a pixel run: GiBs).
+        state = state.replace(replay=None)
         if self.eval_device is None:
             done: Future = Future()
             done.set_result(self._evaluate(state, key))
