@@ -9,6 +9,7 @@ with a message naming the differences.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import time
@@ -216,6 +217,27 @@ class Run:
         state, iteration = self.start(resume)
         return jax.block_until_ready(state), iteration
 
+    def check_memory(self, abstract=None, fraction: float = 0.8) -> None:
+        """Refuse, before anything is allocated, replays that would not fit in this host's memory
+        (CPU devices share it; pixel frames make this easy to hit): one line naming the fix."""
+        if jax.devices()[0].platform != "cpu":
+            return
+        try:
+            host = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (AttributeError, ValueError, OSError):
+            return
+        abstract = self._abstract() if abstract is None else abstract
+        need = replay_lib.memory_bytes(abstract.replay) / max(jax.process_count(), 1)
+        if need > fraction * host:
+            cap, steps = self.cfg.replay.capacity, self.cfg.run.steps
+            gib = 1024**3
+            raise config_lib.ConfigError(
+                f"the replay needs {need / gib:.1f} GiB for {self.num_runs} run(s), more than "
+                f"{fraction:.0%} of this machine's {host / gib:.1f} GiB; lower replay.capacity "
+                f"(now {cap} env steps; a run of {steps} env steps never holds more than {steps}) "
+                f"or train fewer seeds at once"
+            )
+
     def start(self, resume: tuple[int, dict] | None = None) -> tuple[trainer_lib.TrainState, int]:
         """Fresh state, or the newest checkpoint's that restores (``resume``: from
         :meth:`resume_point`). Returns (state, iteration)."""
@@ -323,11 +345,12 @@ class Run:
         issue its collectives in the same order)."""
         t0 = time.perf_counter()
         resume = self.resume_point()
+        abstract = self._abstract()
+        self.check_memory(abstract)
         if jax.process_count() > 1:
             started = self.start(resume)
             init_s = time.perf_counter() - t0
             return started, init_s, self.compile(started[0], started[1])
-        abstract = self._abstract()
         with ThreadPoolExecutor(max_workers=2, thread_name_prefix="start") as pool:
             pending = pool.submit(self.compile, abstract, 0)
             starting = pool.submit(self._start_ready, resume)

@@ -82,3 +82,21 @@ def test_eval_video_of_a_pixel_run_also_shows_what_the_agent_saw(tmp_path):
     video = iio.imread(res.run_dir / f"eval_{step}_run0.gif")
     assert agent.shape[1:3] == (64, 64) and video.shape[1:3] == (128, 128)
     assert len(agent) == len(video) > 1
+
+
+def test_a_replay_larger_than_the_machine_is_refused_before_compiling(tmp_path):
+    import time
+
+    cfg = config.load(
+        task="cheetah_run",
+        presets=["debug"],
+        overrides=["env.obs=pixels", "wm.cnn_depth=4", "replay.capacity=40000000"],
+    )
+    run = runner.Run(
+        cfg, envs.from_config(cfg.env), tmp_path / "big", progress=False, log=lambda *_: None
+    )
+    t = time.perf_counter()
+    with pytest.raises(config.ConfigError, match=r"lower replay\.capacity \(now 40000000"):
+        run.run()
+    assert time.perf_counter() - t < 60  # no chunk compile (50-100 s) before the refusal
+    run.close()
