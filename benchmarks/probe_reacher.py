@@ -89,9 +89,8 @@ def main(argv=None) -> int:
             r_plan = reduced.reward(wm_lib.plan_params(s.wm), carry.post.deter)
             a, carry = agent_lib.act(agent, None, carry, k_act, training=False)
             es = jax.vmap(env.step)(es, a)
-            dist = jnp.linalg.norm(
-                es.obs[:, 2:4], axis=-1
-            )  # obs: position 2, to_target 2, velocity 2
+            obs = es.info.get("state_obs", es.obs)  # the state vector, pixel runs included
+            dist = jnp.linalg.norm(obs[:, 2:4], axis=-1)  # obs: position 2, to_target 2, velocity 2
             return (es, carry), (es.reward, dist, v, r_pred, r_plan)
 
         _, out = jax.lax.scan(step_fn, (es, carry), jnp.arange(length))

@@ -91,20 +91,14 @@ def mujoco_frames(env, states, size: int):
 def our_frames(env, states, size: int):
     """Our render and geom-id image of each state."""
     scene = render.make_scene(env.mj_model, size, size, render.camera_for(env))
-    m = env.mjx_model
-    target = mujoco.mj_name2id(env.mj_model, mujoco.mjtObj.mjOBJ_GEOM, "target")
 
     @jax.jit
     def one(qpos, txy):
-        d = env.state_from_physics(
-            qpos, jnp.zeros(env.mj_model.nv), **({"target_xy": txy} if txy is not None else {})
-        ).pipeline_state
-        xpos = d.geom_xpos
-        if txy is not None and target >= 0:
-            xpos = xpos.at[target, :2].set(txy)
-        return render.render_data(scene, d, xpos, with_ids=True)
+        task = {} if txy is None else {"target_xy": txy}
+        state = env.state_from_physics(qpos, jnp.zeros(env.mj_model.nv), **task)
+        d = state.pipeline_state
+        return render.render_data(scene, d, env.render_geom_xpos(d, state.info), with_ids=True)
 
-    del m
     images, ids = [], []
     for qpos, txy in states:
         im, g = one(jnp.asarray(qpos), None if txy is None else jnp.asarray(txy))

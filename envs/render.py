@@ -31,8 +31,9 @@ CAMERAS = {"cheetah": 0, "reacher": 0, "quadruped": 2, "walker": 0}
 _G = mujoco.mjtGeom
 _TYPES = ("plane", "sphere", "capsule", "ellipsoid", "cylinder", "box")
 _INF = 1e6
-# MuJoCo's defaults in the suite's common/visual.xml and skybox.xml.
-_HEAD_AMBIENT, _HEAD_DIFFUSE, _KEY_DIFFUSE = 0.4, 0.8, 0.5
+# MuJoCo's light diffuse default (the models' lights set none) and the suite's skybox.xml; the
+# headlight's ambient and diffuse come from the model (common/visual.xml: 0.4, 0.8).
+_KEY_DIFFUSE = 0.5
 # The floor's reflectance (0.2) darkens it in MuJoCo's render; matched on mean floor colour.
 _FLOOR_GAIN = 0.72
 _SKY_TOP, _SKY_BOTTOM = np.array([0.4, 0.6, 0.8]), np.array([0.0, 0.0, 0.0])
@@ -52,6 +53,7 @@ class Scene(NamedTuple):
     checker_rgb: np.ndarray  # [2, 3]
     rays: np.ndarray  # [H*W, 3] unit directions in the camera frame
     key_dir: np.ndarray  # [3] direction the key light shines (world), or zeros
+    head: tuple  # (ambient, diffuse) of the model's headlight (grey levels)
 
 
 def _visible(m: mujoco.MjModel) -> np.ndarray:
@@ -122,6 +124,7 @@ def make_scene(m: mujoco.MjModel, width: int = 64, height: int = 64, camera: int
         checker_rgb=np.array([[0.1, 0.2, 0.3], [0.2, 0.3, 0.4]], np.float32),
         rays=rays.astype(np.float32),
         key_dir=key.astype(np.float32),
+        head=(float(m.vis.headlight.ambient[0]), float(m.vis.headlight.diffuse[0])),
     )
 
 
@@ -197,7 +200,6 @@ def _intersect(kind, o, e, size):
 
 def _local_normal(kind_of, q, size):
     """Outward normal at local hit point q [P,3] of geom type ``kind_of`` [P] (index in _TYPES)."""
-    r = size[:, 0:1]
     h = size[:, 1:2]
     cap = jnp.concatenate([q[:, :2], q[:, 2:3] - jnp.clip(q[:, 2:3], -h, h)], -1)
     on_cap = jnp.abs(q[:, 2:3]) >= h - 1e-5 * jnp.maximum(h, 1.0)
@@ -219,7 +221,6 @@ def _local_normal(kind_of, q, size):
         ]
     )
     n = jnp.take_along_axis(normals, kind_of[None, :, None], 0)[0]
-    del r
     return n / (jnp.linalg.norm(n, axis=-1, keepdims=True) + 1e-9)
 
 
@@ -233,8 +234,7 @@ def render_pose(scene: Scene, geom_xpos, geom_xmat, cam_pos, cam_mat, with_ids: 
     best_t = jnp.full(dirs.shape[0], _INF)
     best_g = jnp.full(dirs.shape[0], -1, jnp.int32)
     kind_idx = jnp.zeros(dirs.shape[0], jnp.int32)
-    for k, (kind, ids) in enumerate((kd, scene.geoms[kd]) for kd in _TYPES if kd in scene.geoms):
-        del k
+    for kind, ids in scene.geoms.items():
         rot = geom_xmat[ids]  # [G, 3, 3] local -> world
         o = jnp.einsum("gji,gj->gi", rot, cam_pos[None] - geom_xpos[ids])  # R^T (c - p)
         e = jnp.einsum("pj,gji->pgi", dirs, rot)  # R^T d, [P, G, 3]
@@ -262,7 +262,7 @@ def render_pose(scene: Scene, geom_xpos, geom_xmat, cam_pos, cam_mat, with_ids: 
     base = jnp.where(jnp.asarray(scene.checker)[g][:, None], floor * _FLOOR_GAIN, base)
     head = jnp.clip(-jnp.sum(normal * dirs, -1), 0.0, 1.0)
     key = jnp.clip(-normal @ jnp.asarray(scene.key_dir), 0.0, 1.0)
-    light = _HEAD_AMBIENT + _HEAD_DIFFUSE * head + _KEY_DIFFUSE * key
+    light = scene.head[0] + scene.head[1] * head + _KEY_DIFFUSE * key
     shaded = base * light[:, None]
     w = jnp.clip(dirs[:, 2] * 0.5 + 0.5, 0.0, 1.0)[:, None]
     sky = jnp.asarray(_SKY_BOTTOM, jnp.float32) + w * jnp.asarray(
@@ -293,17 +293,14 @@ def make_renderer(env, width: int = 128, height: int = 128, camera: int | None =
     """Returns ``render(qpos [nq], target_xy [2] | None) -> uint8 [H, W, 3]`` (jittable)."""
     scene = make_scene(env.mj_model, width, height, camera_for(env) if camera is None else camera)
     m = mjx.put_model(env.mj_model, impl="jax")
-    target = mujoco.mj_name2id(env.mj_model, mujoco.mjtObj.mjOBJ_GEOM, "target")
 
     def render(qpos: jax.Array, target_xy: jax.Array | None = None) -> jax.Array:
         d = mjx.make_data(m).replace(qpos=qpos)
         d = mjx.kinematics(m, d)
         d = mjx.com_pos(m, d)
         d = mjx.camlight(m, d)
-        xpos = d.geom_xpos
-        if target_xy is not None and target >= 0:
-            xpos = xpos.at[target, :2].set(target_xy)
-        return render_data(scene, d, xpos)
+        info = {} if target_xy is None else {"target_xy": target_xy}
+        return render_data(scene, d, env.render_geom_xpos(d, info))
 
     return render
 

@@ -51,6 +51,23 @@ class TrainingDiverged(RuntimeError):
     """Persistent non-finite updates: the run stopped; the last good checkpoint is intact."""
 
 
+def host_memory_bytes() -> int | None:
+    """Memory this process may use: physical RAM, or the cgroup's limit where lower (containers,
+    CI jobs); None where neither can be read."""
+    try:
+        limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        limit = None
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = Path(path).read_text().strip()
+        except OSError:
+            continue
+        if text.isdigit():
+            limit = int(text) if limit is None else min(limit, int(text))
+    return limit
+
+
 @dataclass
 class RunResult:
     run_dir: Path
@@ -219,12 +236,12 @@ class Run:
 
     def check_memory(self, abstract=None, fraction: float = 0.8) -> None:
         """Refuse, before anything is allocated, replays that would not fit in this host's memory
-        (CPU devices share it; pixel frames make this easy to hit): one line naming the fix."""
+        (CPU devices share it; pixel frames make this easy to hit): one line naming the fix.
+        Assumes one process per host (a multi-process run holds its share of the runs)."""
         if jax.devices()[0].platform != "cpu":
             return
-        try:
-            host = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-        except (AttributeError, ValueError, OSError):
+        host = host_memory_bytes()
+        if host is None:
             return
         abstract = self._abstract() if abstract is None else abstract
         need = replay_lib.memory_bytes(abstract.replay) / max(jax.process_count(), 1)
@@ -232,10 +249,10 @@ class Run:
             cap, steps = self.cfg.replay.capacity, self.cfg.run.steps
             gib = 1024**3
             raise config_lib.ConfigError(
-                f"the replay needs {need / gib:.1f} GiB for {self.num_runs} run(s), more than "
-                f"{fraction:.0%} of this machine's {host / gib:.1f} GiB; lower replay.capacity "
-                f"(now {cap} env steps; a run of {steps} env steps never holds more than {steps}) "
-                f"or train fewer seeds at once"
+                f"the replay needs {need / gib:.1f} GiB in this process "
+                f"({self.num_runs} run(s) in all), more than {fraction:.0%} of the "
+                f"{host / gib:.1f} GiB it may use; lower replay.capacity (now {cap} env steps; a "
+                f"run of {steps} env steps never holds more than {steps}) or train fewer seeds at once"
             )
 
     def start(self, resume: tuple[int, dict] | None = None) -> tuple[trainer_lib.TrainState, int]:

@@ -151,6 +151,17 @@ def test_a_pixel_env_steps_in_jit_with_one_frame_per_agent_step():
         assert s.obs.dtype == jnp.uint8 and s.obs.shape == (64, 64, 3)
         assert s.info["state_obs"].shape == (17,)
     assert int(s1.info["steps"]) == 2
+    # one render in the traced step, outside the action repeat's scan (which PixelObs wraps; a
+    # scan traces its body once, so the count alone would not tell)
+    assert isinstance(env, envs.PixelObs) and isinstance(env.env, envs.EpisodeWrapper)
+    calls = []
+    draw = env._render_data
+    env._render_data = lambda *a, **k: calls.append(1) or draw(*a, **k)
+    try:
+        jax.make_jaxpr(lambda s, a: env.step(s, a))(s0, jnp.ones(env.action_size))  # a fresh trace
+    finally:
+        env._render_data = draw
+    assert len(calls) == 1
     # the frame is the render of the state after the repeat
     bare = env.unwrapped
     scene = render.make_scene(bare.mj_model, 64, 64, 0)
