@@ -287,6 +287,8 @@ class Run:
         self.log(
             f"resumed from {self.dir / 'checkpoints' / str(step)} (env step {meta['env_steps']})"
         )
+        if self.main:  # the config in force now: a resume may change run.steps or eval_overlap
+            config_lib.dump_yaml(self.cfg, self.dir / "config.yaml")
         return state, int(meta["iteration"])
 
     def save(self, state, iteration: int, env_steps: int, wait: bool = False) -> bool:

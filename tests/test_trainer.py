@@ -120,6 +120,27 @@ def test_metrics_carry_wall_time_that_a_resumed_run_continues(runs):
     assert b_last >= a_at_first + res_b.chunk_s[0]
 
 
+def test_a_resume_that_trains_longer_records_the_new_length(tmp_path):
+    """`make train STEPS=...` again on a finished run trains on; config.yaml then says how long the
+    run is now, not how long it was first asked to be."""
+    import yaml
+
+    cfg = debug_cfg()
+    chunk = cfg.run.chunk_env_steps
+    quiet = dict(num_seeds=2, progress=False, log=lambda *_: None)
+    first = runner.Run(cfg, make_env(cfg), tmp_path / "r", **quiet)
+    first.run(chunk)
+    first.close()
+    longer = debug_cfg(overrides=[f"run.steps={2 * chunk}"])
+    again = runner.Run(longer, make_env(longer), tmp_path / "r", **quiet)
+    again.run()
+    again.close()
+    rows = (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()
+    assert max(json.loads(r)["step"] for r in rows) == 2 * chunk
+    saved = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    assert saved["run"]["steps"] == 2 * chunk
+
+
 def test_seeds_differ_in_init_and_data(runs):
     _, (_, state), _ = runs
     w = jax.tree.leaves(state.wm)
