@@ -31,7 +31,8 @@ def _read_run(run_dir: Path) -> tuple[list[dict], dict]:
     rows, _ = metrics_lib.read_rows(path)
     cfg_path = run_dir / "config.yaml"
     cfg = yaml.safe_load(cfg_path.read_text()) if cfg_path.exists() else {}
-    return rows, config_lib.flatten(cfg or {})
+    # keys added since a run was written hold the value it ran with (config.ADDED_KEYS)
+    return rows, config_lib.flatten(config_lib.complete_saved(cfg) if cfg else {})
 
 
 def config_differences(configs: list[dict]) -> list[str]:

@@ -58,3 +58,19 @@ def test_a_directory_without_metrics_is_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SystemExit, match="empty: no metrics.jsonl"):
         combine.combine([tmp_path / "empty"], tmp_path / "out")
+
+
+def test_a_key_added_since_a_run_was_written_is_not_a_difference(tmp_path):
+    """A run written before `env.obs` existed ran with its value, 'state' (config.ADDED_KEYS)."""
+    old = fake_run(tmp_path / "old", 0, {10000: [10.0]})
+    new = fake_run(tmp_path / "new", 1, {10000: [20.0]})
+    cfg = yaml.safe_load((old / "config.yaml").read_text())
+    cfg["env"] = {"task": "cheetah_run"}
+    (old / "config.yaml").write_text(yaml.safe_dump(cfg))
+    cfg["env"] = {"task": "cheetah_run", "obs": "state"}
+    (new / "config.yaml").write_text(yaml.safe_dump(cfg))
+    assert combine.combine([old, new], tmp_path / "out")["config_differences"] == []
+    cfg["env"] = {"task": "cheetah_run", "obs": "pixels"}
+    (new / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(SystemExit, match=r"env\.obs: 'state' \(run 0\) vs 'pixels' \(run 1\)"):
+        combine.combine([old, new], tmp_path / "out")
