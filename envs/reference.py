@@ -90,15 +90,7 @@ def mujoco_frames(env, states, size: int):
 
 def our_frames(env, states, size: int):
     """Our render and geom-id image of each state."""
-    scene = render.make_scene(env.mj_model, size, size, render.camera_for(env))
-
-    @jax.jit
-    def one(qpos, txy):
-        task = {} if txy is None else {"target_xy": txy}
-        state = env.state_from_physics(qpos, jnp.zeros(env.mj_model.nv), **task)
-        d = state.pipeline_state
-        return render.render_data(scene, d, env.render_geom_xpos(d, state.info), with_ids=True)
-
+    one = render.pose_renderer(env, size)
     images, ids = [], []
     for qpos, txy in states:
         im, g = one(jnp.asarray(qpos), None if txy is None else jnp.asarray(txy))

@@ -289,6 +289,22 @@ def render_data(scene: Scene, data: mjx.Data, geom_xpos=None, with_ids: bool = F
     )
 
 
+def pose_renderer(env, size: int = 64):
+    """Jitted ``(qpos [nq], target_xy [2] | None) -> (uint8 [size, size, 3], geom ids [size, size])``
+    of a bare task posed at ``qpos`` with zero velocities, through the task's own state (stage 1
+    of the physics) and its ``render_geom_xpos``: for tests and comparisons."""
+    scene = make_scene(env.mj_model, size, size, camera_for(env))
+
+    @jax.jit
+    def frame(qpos, target_xy):
+        task = {} if target_xy is None else {"target_xy": target_xy}
+        state = env.state_from_physics(qpos, jnp.zeros(env.mj_model.nv), **task)
+        d = state.pipeline_state
+        return render_data(scene, d, env.render_geom_xpos(d, state.info), with_ids=True)
+
+    return frame
+
+
 def make_renderer(env, width: int = 128, height: int = 128, camera: int | None = None):
     """Returns ``render(qpos [nq], target_xy [2] | None) -> uint8 [H, W, 3]`` (jittable)."""
     scene = make_scene(env.mj_model, width, height, camera_for(env) if camera is None else camera)

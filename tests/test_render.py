@@ -42,17 +42,7 @@ def _frame(env, qpos, target_xy=None, size=64):
     """(image, geom ids) of ``env`` posed at ``qpos`` (velocities zero); one jit per env."""
     key = (env.name, size)
     if key not in _FRAMES:
-        scene = render.make_scene(env.mj_model, size, size, render.camera_for(env))
-
-        @jax.jit
-        def frame(qpos, target_xy):
-            task = {} if target_xy is None else {"target_xy": target_xy}
-            state = env.state_from_physics(qpos, jnp.zeros(env.mj_model.nv), **task)
-            d = state.pipeline_state
-            xpos = env.render_geom_xpos(d, state.info)
-            return render.render_data(scene, d, xpos, with_ids=True)
-
-        _FRAMES[key] = frame
+        _FRAMES[key] = render.pose_renderer(env, size)
     t = None if target_xy is None else jnp.asarray(target_xy, jnp.float32)
     image, ids = _FRAMES[key](jnp.asarray(qpos, jnp.float32), t)
     return np.asarray(image), np.asarray(ids)
