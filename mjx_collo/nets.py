@@ -118,11 +118,81 @@ def _flatten_batch(x: jax.Array, event_ndim: int) -> tuple[jax.Array, tuple[int,
     return x.reshape((-1,) + x.shape[x.ndim - event_ndim :]), batch
 
 
+def conv_stride2(x: jax.Array, kernel: jax.Array, bias: jax.Array) -> jax.Array:
+    """``nn.Conv(strides=2, padding="VALID")`` as one matmul on patches: ``x [B, H, W, C]``,
+    ``kernel [k, k, C, O]`` -> ``[B, (H - k) // 2 + 1, (W - k) // 2 + 1, O]``.
+
+    Why not ``lax.conv``: XLA's CPU convolutions inside a while loop (the training loop's
+    ``fori_loop`` of updates) ran ~6x slower than the same convolution outside one (a pixel
+    world-model update at depth 8: 9.7 s vs 1.5 s on 2 cores); strided slices, a concatenation
+    and a dot stay fast in loops and under ``vmap`` over seeds, forward and backward
+    (docs/BENCHMARKS.md "Pixels"). The same numbers as ``nn.Conv`` up to float rounding.
+    """
+    k = kernel.shape[0]
+    b, h, w, c = x.shape
+    ho, wo = (h - k) // 2 + 1, (w - k) // 2 + 1
+    cols = [
+        x[:, i : i + 2 * ho - 1 : 2, j : j + 2 * wo - 1 : 2, :] for i in range(k) for j in range(k)
+    ]
+    patches = jnp.concatenate(cols, axis=-1)  # [B, Ho, Wo, k*k*C], ordered (i, j, c)
+    return patches @ kernel.reshape(k * k * c, -1) + bias
+
+
+def conv_transpose_stride2(x: jax.Array, kernel: jax.Array, bias: jax.Array) -> jax.Array:
+    """``nn.ConvTranspose(strides=2, padding="VALID")`` (``transpose_kernel=False``) as one
+    matmul and a sum of shifted slices: ``x [B, H, W, C]``, ``kernel [k, k, C, O]`` ->
+    ``[B, 2 (H - 1) + k, 2 (W - 1) + k, O]``. Why: see :func:`conv_stride2`.
+
+    Input pixel ``i`` adds ``x[i] @ kernel[k - 1 - a]`` to output ``2 i + a``. Splitting the
+    tap ``a = 2 p + q`` (kernel padded to even size), output ``2 m + q`` sums the taps ``p`` of
+    inputs ``m - p``: each parity ``q`` is a sum of ``ceil(k / 2)`` shifted input-sized slices
+    per axis, and the four parities interleave into the output."""
+    k = kernel.shape[0]
+    b, h, w, c = x.shape
+    o = kernel.shape[-1]
+    flipped = kernel[::-1, ::-1]  # output 2 i + a takes flipped[a]
+    taps = flipped.transpose(2, 0, 1, 3).reshape(c, k * k * o)
+    y = (x.reshape(-1, c) @ taps).reshape(b, h, w, k, k, o)
+    if k % 2:  # an extra zero tap makes both parities the same length
+        y = jnp.pad(y, ((0, 0),) * 3 + ((0, 1), (0, 1), (0, 0)))
+    half = (k + 1) // 2
+    y = y.reshape(b, h, w, half, 2, half, 2, o)
+    rows, cols = h - 1 + half, w - 1 + half
+    out = 0.0
+    for p in range(half):
+        for r in range(half):
+            pad = ((0, 0), (p, rows - h - p), (r, cols - w - r), (0, 0), (0, 0), (0, 0))
+            out = out + jnp.pad(y[:, :, :, p, :, r], pad)  # [B, rows, cols, 2, 2, O]
+    out = out.transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * rows, 2 * cols, o)
+    return out[:, : 2 * (h - 1) + k, : 2 * (w - 1) + k] + bias
+
+
+class StridedConv(nn.Module):
+    """Stride-2 VALID convolution (``transpose=False``) or transposed convolution, computed by
+    :func:`conv_stride2` / :func:`conv_transpose_stride2`. Parameters as flax's ``nn.Conv`` /
+    ``nn.ConvTranspose`` (``kernel [k, k, C, O]`` LeCun normal, ``bias [O]`` zeros), so a
+    module named like flax's own (``Conv_0``, ``ConvTranspose_0``) has the same parameters."""
+
+    features: int
+    kernel_size: int
+    transpose: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        k = self.kernel_size
+        kernel = self.param(
+            "kernel", nn.initializers.lecun_normal(), (k, k, x.shape[-1], self.features)
+        )
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        fn = conv_transpose_stride2 if self.transpose else conv_stride2
+        return fn(x, kernel, bias)
+
+
 class ConvEncoder(nn.Module):
     """D1/LC pixel encoder: 4 x Conv(k4, s2, VALID), depths d, 2d, 4d, 8d; act between.
 
     Call: ``img: [..., 64, 64, C] float (already preprocessed) -> [..., 32 * depth]``
-    (2 x 2 x 8d flattened; 1024 for depth 32).
+    (2 x 2 x 8d flattened; 1024 for depth 32). Layers are :class:`StridedConv` (matmuls).
     """
 
     depth: int = 32
@@ -133,7 +203,7 @@ class ConvEncoder(nn.Module):
         x, batch = _flatten_batch(img, 3)
         act = ACTIVATIONS[self.act]
         for i in range(4):
-            x = act(nn.Conv(self.depth * 2**i, (4, 4), strides=(2, 2), padding="VALID")(x))
+            x = act(StridedConv(self.depth * 2**i, 4, name=f"Conv_{i}")(x))
         return x.reshape(batch + (-1,))
 
 
@@ -141,7 +211,8 @@ class ConvDecoder(nn.Module):
     """D1/LC pixel decoder: Dense(32 d) -> 1x1 -> ConvT(4d, k5) -> ConvT(2d, k5) -> ConvT(d, k6)
     -> ConvT(C, k6), stride 2, VALID; spatial 1 -> 5 -> 13 -> 30 -> 64.
 
-    Call: ``feat: [..., F] -> mean image [..., 64, 64, channels]``.
+    Call: ``feat: [..., F] -> mean image [..., 64, 64, channels]``. Layers are
+    :class:`StridedConv` (matmuls).
     """
 
     channels: int = 3
@@ -155,7 +226,7 @@ class ConvDecoder(nn.Module):
         x = nn.Dense(32 * self.depth)(x).reshape((-1, 1, 1, 32 * self.depth))
         layers = ((4 * self.depth, 5), (2 * self.depth, 5), (self.depth, 6), (self.channels, 6))
         for i, (features, kernel) in enumerate(layers):
-            x = nn.ConvTranspose(features, (kernel, kernel), strides=(2, 2), padding="VALID")(x)
+            x = StridedConv(features, kernel, transpose=True, name=f"ConvTranspose_{i}")(x)
             if i < len(layers) - 1:
                 x = act(x)
         return x.reshape(batch + x.shape[1:])
