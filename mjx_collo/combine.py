@@ -36,11 +36,13 @@ def _read_run(run_dir: Path) -> tuple[list[dict], dict]:
 
 
 def config_differences(configs: list[dict]) -> list[str]:
-    """``key: value (run 0) vs value (run i)`` for every key outside ``ALLOWED`` that differs."""
+    """``key: value (run 0) vs value (run i)`` for every key outside ``ALLOWED`` that differs
+    (keys inert in both runs, :func:`config.inert_keys`, do not count)."""
     out = []
     first = configs[0]
     for i, other in enumerate(configs[1:], start=1):
-        for key in sorted(set(first) | set(other)):
+        inert = config_lib.inert_keys(first) & config_lib.inert_keys(other)
+        for key in sorted((set(first) | set(other)) - inert):
             if key not in ALLOWED and first.get(key) != other.get(key):
                 out.append(f"{key}: {first.get(key)!r} (run 0) vs {other.get(key)!r} (run {i})")
     return out

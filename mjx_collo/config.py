@@ -423,10 +423,19 @@ def dump_yaml(cfg: Config, path: str | Path) -> None:
     tmp.replace(path)
 
 
+def inert_keys(flat: Mapping[str, Any]) -> set[str]:
+    """Keys of a flattened config that cannot change its run, given its other values: the conv
+    encoder's ``wm.cnn_depth`` in a run that sees states. A default changed for pixel runs then
+    leaves state runs resumable and combinable with runs written before the change."""
+    return {"wm.cnn_depth"} if flat.get("env.obs", "state") == "state" else set()
+
+
 def diff(a: Config, b: Config) -> list[str]:
-    """Human-readable list of ``key: a -> b`` differences between two configs."""
+    """Human-readable list of ``key: a -> b`` differences between two configs (keys inert in
+    both, :func:`inert_keys`, are not differences)."""
     fa, fb = flatten(to_dict(a)), flatten(to_dict(b))
-    keys = sorted(set(fa) | set(fb))
+    inert = inert_keys(fa) & inert_keys(fb)
+    keys = sorted((set(fa) | set(fb)) - inert)
     return [f"{k}: {fa.get(k)!r} -> {fb.get(k)!r}" for k in keys if fa.get(k) != fb.get(k)]
 
 

@@ -253,7 +253,7 @@ def recorded_finished(results: Path, cell: Cell) -> bool:
         return False
     try:
         saved = config_lib.build(config_lib.complete_saved(yaml.safe_load(cfg_file.read_text())))
-        if config_lib.to_dict(saved) != config_lib.to_dict(run_config(cell)):
+        if config_lib.diff(saved, run_config(cell)):  # keys inert for the run do not count
             return False
     except (yaml.YAMLError, config_lib.ConfigError, AttributeError, TypeError):
         return False

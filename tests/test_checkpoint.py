@@ -149,3 +149,15 @@ def test_where_evaluations_run_and_how_long_may_change_on_resume(tmp_path):
     other = config.load(task="reacher_easy", presets=["debug"], overrides=["run.eval_episodes=3"])
     with pytest.raises(checkpoint.CheckpointError, match="run.eval_episodes: 1 -> 3"):
         ck.check_config(other)
+
+
+def test_conv_depth_differs_only_for_pixel_runs():
+    """A resume compares configs with config.diff: a state run written before a change of the
+    pixel encoder's default depth still resumes; a pixel run is refused, naming the key."""
+    state_old = config.load(overrides=["wm.cnn_depth=32"])
+    state_new = config.load(overrides=["wm.cnn_depth=16"])
+    assert config.diff(state_old, state_new) == []
+    px_old = config.load(overrides=["env.obs=pixels", "wm.cnn_depth=32"])
+    px_new = config.load(overrides=["env.obs=pixels", "wm.cnn_depth=16"])
+    assert config.diff(px_old, px_new) == ["wm.cnn_depth: 32 -> 16"]
+    assert "env.obs: 'state' -> 'pixels'" in config.diff(state_old, px_new)

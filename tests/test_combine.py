@@ -74,3 +74,22 @@ def test_a_key_added_since_a_run_was_written_is_not_a_difference(tmp_path):
     (new / "config.yaml").write_text(yaml.safe_dump(cfg))
     with pytest.raises(SystemExit, match=r"env\.obs: 'state' \(run 0\) vs 'pixels' \(run 1\)"):
         combine.combine([old, new], tmp_path / "out")
+
+
+def test_the_conv_depth_of_a_state_run_is_not_a_difference(tmp_path):
+    """wm.cnn_depth sizes the pixel encoder: two state runs that differ only there are one
+    experiment (its default may change for pixel runs); two pixel runs are not."""
+    a = fake_run(tmp_path / "a", 0, {10000: [10.0]})
+    b = fake_run(tmp_path / "b", 1, {10000: [20.0]})
+    for run, depth, obs in ((a, 32, "state"), (b, 16, "state")):
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        cfg["env"] = {"task": "cheetah_run", "obs": obs}
+        cfg.setdefault("wm", {})["cnn_depth"] = depth
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    assert combine.combine([a, b], tmp_path / "out")["config_differences"] == []
+    for run in (a, b):
+        cfg = yaml.safe_load((run / "config.yaml").read_text())
+        cfg["env"]["obs"] = "pixels"
+        (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(SystemExit, match=r"wm\.cnn_depth: 32 \(run 0\) vs 16 \(run 1\)"):
+        combine.combine([a, b], tmp_path / "out")

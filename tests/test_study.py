@@ -150,6 +150,9 @@ def test_a_committed_record_counts_as_finished_only_when_whole_and_of_the_same_c
     (rec / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
     assert study.recorded_finished(tmp_path, cell)
     changed = yaml.safe_load((rec / "config.yaml").read_text())
+    changed["wm"]["cnn_depth"] += 8  # inert in a state run (a pixel default changed since)
+    (rec / "config.yaml").write_text(yaml.safe_dump(changed))
+    assert study.recorded_finished(tmp_path, cell)
     changed["planner"]["iters"] += 1
     (rec / "config.yaml").write_text(yaml.safe_dump(changed))
     assert not study.recorded_finished(tmp_path, cell)  # trained under another config
