@@ -244,13 +244,17 @@ class Run:
         if host is None:
             return
         abstract = self._abstract() if abstract is None else abstract
-        need = replay_lib.memory_bytes(abstract.replay) / max(jax.process_count(), 1)
+        replay = replay_lib.memory_bytes(abstract.replay) / max(jax.process_count(), 1)
+        # Measured: a run's resident memory peaks at about twice its replay (4 pixel seeds with
+        # 2.9 GiB replays each were killed at 18.3 GB; with 0.6 GiB each they peaked at 11.2 GiB;
+        # docs/BENCHMARKS.md "Pixels: memory"), so the replay is counted twice.
+        need = 2 * replay
         if need > fraction * host:
             cap, steps = self.cfg.replay.capacity, self.cfg.run.steps
             gib = 1024**3
             raise config_lib.ConfigError(
-                f"the replay needs {need / gib:.1f} GiB in this process "
-                f"({self.num_runs} run(s) in all), more than {fraction:.0%} of the "
+                f"the replay needs {need / gib:.1f} GiB at its peak in this process (twice its "
+                f"{replay / gib:.1f} GiB; {self.num_runs} run(s) in all), more than {fraction:.0%} of the "
                 f"{host / gib:.1f} GiB it may use; lower replay.capacity (now {cap} env steps; a "
                 f"run of {steps} env steps never holds more than {steps}) or train fewer seeds at once"
             )

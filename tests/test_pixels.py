@@ -88,7 +88,7 @@ def test_a_replay_larger_than_the_machine_is_refused_before_compiling(tmp_path, 
     import time
 
     # debug preset: 2 envs, action repeat 2 -> 500k rows x 2 envs x 12 KiB of frames = 11.5 GiB,
-    # against a machine said to have 8 GiB (the real one may have any amount)
+    # held twice at the peak, against a machine said to have 8 GiB (the real one may have any amount)
     monkeypatch.setattr(runner, "host_memory_bytes", lambda: 8 * 1024**3)
     cfg = config.load(
         task="cheetah_run",
@@ -99,7 +99,10 @@ def test_a_replay_larger_than_the_machine_is_refused_before_compiling(tmp_path, 
         cfg, envs.from_config(cfg.env), tmp_path / "big", progress=False, log=lambda *_: None
     )
     t = time.perf_counter()
-    with pytest.raises(config.ConfigError, match=r"needs 11\.5 GiB .* lower replay\.capacity"):
+    with pytest.raises(
+        config.ConfigError,
+        match=r"needs 22\.9 GiB at its peak.*\(twice its 11\.5 GiB.* lower replay\.capacity",
+    ):
         run.run()
     assert time.perf_counter() - t < 60  # no chunk compile (50-100 s) before the refusal
     run.close()
