@@ -140,30 +140,40 @@ def conv_stride2(x: jax.Array, kernel: jax.Array, bias: jax.Array) -> jax.Array:
 
 def conv_transpose_stride2(x: jax.Array, kernel: jax.Array, bias: jax.Array) -> jax.Array:
     """``nn.ConvTranspose(strides=2, padding="VALID")`` (``transpose_kernel=False``) as one
-    matmul and a sum of shifted slices: ``x [B, H, W, C]``, ``kernel [k, k, C, O]`` ->
+    matmul on patches: ``x [B, H, W, C]``, ``kernel [k, k, C, O]`` ->
     ``[B, 2 (H - 1) + k, 2 (W - 1) + k, O]``. Why: see :func:`conv_stride2`.
 
-    Input pixel ``i`` adds ``x[i] @ kernel[k - 1 - a]`` to output ``2 i + a``. Splitting the
-    tap ``a = 2 p + q`` (kernel padded to even size), output ``2 m + q`` sums the taps ``p`` of
-    inputs ``m - p``: each parity ``q`` is a sum of ``ceil(k / 2)`` shifted input-sized slices
-    per axis, and the four parities interleave into the output."""
+    Input pixel ``i`` adds ``x[i] @ kernel[k - 1 - a]`` to output ``2 i + a``. Splitting the tap
+    ``a = 2 p + q`` (the kernel padded to even size 2P), output ``2 m + q`` is the sum over
+    ``p < P`` of ``x[m - p]`` times tap ``2 p + q``: a stride-1 convolution of the zero-padded
+    input whose 4 O output channels are the four output parities ("sub-pixel" convolution), one
+    matmul of the P x P patches, then the parities interleave. A 1 x 1 input is one matmul."""
     k = kernel.shape[0]
     b, h, w, c = x.shape
     o = kernel.shape[-1]
     flipped = kernel[::-1, ::-1]  # output 2 i + a takes flipped[a]
-    taps = flipped.transpose(2, 0, 1, 3).reshape(c, k * k * o)
-    y = (x.reshape(-1, c) @ taps).reshape(b, h, w, k, k, o)
+    if h == 1 and w == 1:
+        taps = flipped.transpose(2, 0, 1, 3).reshape(c, k * k * o)
+        return (x.reshape(b, c) @ taps).reshape(b, k, k, o) + bias
     if k % 2:  # an extra zero tap makes both parities the same length
-        y = jnp.pad(y, ((0, 0),) * 3 + ((0, 1), (0, 1), (0, 0)))
-    half = (k + 1) // 2
-    y = y.reshape(b, h, w, half, 2, half, 2, o)
+        flipped = jnp.pad(flipped, ((0, 1), (0, 1), (0, 0), (0, 0)))
+    half = flipped.shape[0] // 2
+    # weights[(p, r, c), (q, qc, o)] = flipped[2 p + q, 2 r + qc, c, o]
+    weights = flipped.reshape(half, 2, half, 2, c, o).transpose(0, 2, 4, 1, 3, 5)
+    weights = weights.reshape(half * half * c, 4 * o)
     rows, cols = h - 1 + half, w - 1 + half
-    out = 0.0
-    for p in range(half):
-        for r in range(half):
-            pad = ((0, 0), (p, rows - h - p), (r, cols - w - r), (0, 0), (0, 0), (0, 0))
-            out = out + jnp.pad(y[:, :, :, p, :, r], pad)  # [B, rows, cols, 2, 2, O]
-    out = out.transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * rows, 2 * cols, o)
+    pad = half - 1
+    xp = jnp.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+    patches = jnp.concatenate(
+        [
+            xp[:, pad - p : pad - p + rows, pad - r : pad - r + cols, :]  # x[m - p, n - r]
+            for p in range(half)
+            for r in range(half)
+        ],
+        axis=-1,
+    )
+    y = (patches @ weights).reshape(b, rows, cols, 2, 2, o)
+    out = y.transpose(0, 1, 3, 2, 4, 5).reshape(b, 2 * rows, 2 * cols, o)
     return out[:, : 2 * (h - 1) + k, : 2 * (w - 1) + k] + bias
 
 
