@@ -27,6 +27,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from mjx_collo import config as config_lib
+from mjx_collo import replay as replay_lib
 from mjx_collo.config import Config, ConfigError
 
 FORMAT_VERSION = 1
@@ -93,6 +94,33 @@ def _on_this_host(abstract: Any) -> Any:
         return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device)
 
     return None if abstract is None else jax.tree.map(place, abstract)
+
+
+def _replay_rows(replay: Any) -> int:
+    """Rows per env of a seed-stacked replay (``[seeds, rows, envs, ...]`` leaves)."""
+    return int(next(iter(replay.data.values())).shape[1])
+
+
+def _with_rows(abstract: Any, rows: int) -> Any:
+    """The seed-stacked abstract replay with ``rows`` rows per env."""
+
+    def set_rows(x):
+        shape = (x.shape[0], rows) + tuple(x.shape[2:])
+        return jax.ShapeDtypeStruct(shape, x.dtype, sharding=getattr(x, "sharding", None))
+
+    return abstract.replace(data={k: set_rows(v) for k, v in abstract.data.items()})
+
+
+def _resized(replay: Any, abstract: Any) -> Any:
+    """A restored seed-stacked replay moved to ``abstract``'s rows per env (replay.resize), on
+    ``abstract``'s shardings."""
+    rows = _replay_rows(abstract)
+    out = jax.jit(jax.vmap(lambda r: replay_lib.resize(r, rows)))(replay)
+    return jax.tree.map(
+        lambda x, a: jax.device_put(x, a.sharding) if getattr(a, "sharding", None) else x,
+        out,
+        abstract,
+    )
 
 
 def _step_dir(path: Path) -> tuple[Path, int | None]:
@@ -220,7 +248,10 @@ class Checkpointer:
         on_skip: SkipFn | None = None,
     ) -> tuple[Any, Any | None, dict, int]:
         """Restore into the given abstract (``jax.eval_shape``) trees; replay only if asked and
-        saved. Returns (train, replay or None, meta, step).
+        saved. Returns (train, replay or None, meta, step). A replay saved with other rows per
+        env than ``abstract_replay`` (a run extended past the steps its buffer was sized for, or
+        one saved before replays were sized to the run) is moved to the abstract's rows
+        (replay.resize: exact for a buffer that never wrapped).
 
         ``step=None`` takes the newest step that restores and holds only finite numbers: a
         damaged or partial newer step (a directory left empty, a file cut short, a metadata file
@@ -232,17 +263,29 @@ class Checkpointer:
         def load(s: int) -> tuple[Any, Any | None, dict]:
             meta = self.meta(s)
             items = {"train": ocp.args.StandardRestore(_strip_empty(abstract_train))}
+            saved_replay = None
             if abstract_replay is not None and meta.get("has_replay"):
-                items["replay"] = ocp.args.StandardRestore(_strip_empty(abstract_replay))
+                saved_replay = _with_rows(abstract_replay, self._saved_rows(meta))
+                items["replay"] = ocp.args.StandardRestore(_strip_empty(saved_replay))
             out = self.manager.restore(s, args=ocp.args.Composite(**items))
             train = _fill_empty(abstract_train, out["train"])
-            replay = _fill_empty(abstract_replay, out["replay"]) if "replay" in items else None
+            replay = _fill_empty(saved_replay, out["replay"]) if "replay" in items else None
             if not all_finite(train):
                 raise ValueError("the restored state holds NaN/inf")
+            if replay is not None and _replay_rows(replay) != _replay_rows(abstract_replay):
+                replay = _resized(replay, abstract_replay)
             return train, replay, meta
 
         (train, replay, meta), s = self._first_usable(load, on_skip, [step] if step else None)
         return train, replay, meta, s
+
+    def _saved_rows(self, meta: dict) -> int:
+        """Rows per env of a step's saved replay: recorded since replays are sized to the run;
+        before that, always the capacity's (replay.rows_per_env without a run)."""
+        if "replay_rows" in meta:
+            return int(meta["replay_rows"])
+        cfg = self.config_of(meta)
+        return replay_lib.rows_per_env(cfg.replay, cfg.run.num_envs, cfg.env.action_repeat)
 
     def _first_usable(self, load, on_skip: SkipFn | None, steps: list[int] | None = None):
         """``(load(step), step)`` for the newest step that loads; the others before it are

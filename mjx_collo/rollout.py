@@ -41,6 +41,15 @@ class Rollout(NamedTuple):
     policy: Callable[..., tuple[jax.Array, TrainState, jax.Array, dict[str, jax.Array]]]
 
 
+def run_replay_rows(cfg: Config) -> int:
+    """The replay rows per env that a run of ``cfg.run.steps`` env steps (whole chunks) writes:
+    the replay never holds more (replay.rows_per_env)."""
+    per_iter = cfg.run.num_envs * cfg.env.action_repeat
+    chunk = cfg.run.chunk_env_steps
+    iterations = -(-cfg.run.steps // chunk) * chunk // per_iter
+    return replay_lib.run_rows(iterations, cfg.env.episode_env_steps // cfg.env.action_repeat)
+
+
 def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) -> Rollout:
     """Acting for ``cfg`` on ``env`` (one unbatched env, action repeat and episode limit applied,
     actions in [-1, 1]); ``bind(hyper) -> (config with the swept values, Agent)``;
@@ -51,6 +60,7 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
     action_dim = int(env.action_size)
     uses_actor = cfg.planner.kind == "dreamer"
     value_mode = cfg.value.mode if cfg.value.enabled and not uses_actor else "none"
+    replay_rows = run_replay_rows(cfg)
 
     def first_row(obs: jax.Array) -> dict[str, jax.Array]:
         n = obs.shape[0]
@@ -73,6 +83,7 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
             num_envs,
             c.env.action_repeat,
             replay_lib.default_fields(obs_shape, action_dim, env_state.obs.dtype),
+            run=replay_rows,
         )
         return env_state, carry, replay_lib.add(replay, first_row(env_state.obs))
 

@@ -255,8 +255,8 @@ class Run:
             raise config_lib.ConfigError(
                 f"the replay needs {need / gib:.1f} GiB at its peak in this process (twice its "
                 f"{replay / gib:.1f} GiB; {self.num_runs} run(s) in all), more than {fraction:.0%} of the "
-                f"{host / gib:.1f} GiB it may use; lower replay.capacity (now {cap} env steps; a "
-                f"run of {steps} env steps never holds more than {steps}) or train fewer seeds at once"
+                f"{host / gib:.1f} GiB it may use; lower replay.capacity (now {cap} env steps; "
+                f"the replay holds the fewer of it and the run's {steps}) or train fewer seeds at once"
             )
 
     def start(self, resume: tuple[int, dict] | None = None) -> tuple[trainer_lib.TrainState, int]:
@@ -307,6 +307,7 @@ class Run:
                 "env_steps": env_steps,
                 "num_runs": self.num_runs,
                 "labels": self.labels,
+                "replay_rows": int(next(iter(state.replay.data.values())).shape[1]),
             },
         )
         if wait:
@@ -428,6 +429,11 @@ class Run:
         total = int(total_env_steps or cfg.run.steps)
         chunk_steps = cfg.run.chunk_env_steps
         total = -(-total // chunk_steps) * chunk_steps  # round up to whole chunks
+        if total > -(-cfg.run.steps // chunk_steps) * chunk_steps:
+            raise ValueError(
+                f"run({total}) goes past run.steps={cfg.run.steps}, the steps the replay was "
+                f"sized for; build the Runner with run.steps={total}"
+            )
         launch = time.perf_counter()
         (state, it), init_s, (compiled, compile_s) = self._start_and_compile()
         per_iter = self.trainer.env_steps_per_iteration

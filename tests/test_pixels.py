@@ -87,13 +87,19 @@ def test_eval_video_of_a_pixel_run_also_shows_what_the_agent_saw(tmp_path):
 def test_a_replay_larger_than_the_machine_is_refused_before_compiling(tmp_path, monkeypatch):
     import time
 
-    # debug preset: 2 envs, action repeat 2 -> 500k rows x 2 envs x 12 KiB of frames = 11.5 GiB,
+    # debug preset: 2 envs, action repeat 2 -> 500k rows x 2 envs x 12 KiB of frames = 11.5 GiB (a
+    # run as long as the capacity: a shorter one holds only its own rows),
     # held twice at the peak, against a machine said to have 8 GiB (the real one may have any amount)
     monkeypatch.setattr(runner, "host_memory_bytes", lambda: 8 * 1024**3)
     cfg = config.load(
         task="cheetah_run",
         presets=["debug"],
-        overrides=["env.obs=pixels", "wm.cnn_depth=4", "replay.capacity=2000000"],
+        overrides=[
+            "env.obs=pixels",
+            "wm.cnn_depth=4",
+            "replay.capacity=2000000",
+            "run.steps=2000000",
+        ],
     )
     run = runner.Run(
         cfg, envs.from_config(cfg.env), tmp_path / "big", progress=False, log=lambda *_: None

@@ -137,3 +137,59 @@ def test_uint8_round_trip_and_vmap_over_seeds():
         states, jax.random.split(jax.random.key(1), 2)
     )
     assert out["obs"].shape == (2, 3, 2, 4, 4, 3) and out["obs"].dtype == jnp.uint8
+
+
+def _filled(rows: int, steps: int, num_envs: int = 2) -> replay.ReplayState:
+    state = replay.init(_cfg(capacity=2 * rows * num_envs), num_envs, 2, _fields())
+    add = jax.jit(replay.add)
+    for t in range(steps):
+        state = add(state, _row(t, num_envs, first=t % 4 == 0))
+    return state
+
+
+def test_run_rows_counts_the_first_observation_and_each_reset():
+    # 3 episodes of 4 agent steps: 1 first row + 12 steps + 3 first rows after the ends
+    assert replay.run_rows(12, 4) == 16
+    assert replay.run_rows(13, 4) == 17
+    cfg = _cfg(capacity=400)  # 400 env steps / repeat 2 / 2 envs = 100 rows per env
+    assert replay.rows_per_env(cfg, 2, 2) == 100
+    assert replay.rows_per_env(cfg, 2, 2, run=40) == 40  # a shorter run: only what it writes
+    assert replay.rows_per_env(cfg, 2, 2, run=1000) == 100  # a longer one: the capacity (a ring)
+    assert replay.rows_per_env(cfg, 2, 2, run=1) == cfg.length  # never below one window
+
+
+def test_a_grown_or_shrunk_buffer_that_never_wrapped_samples_the_same_windows():
+    """An extended run grows its buffer (checkpoint restore): the same rows where they were, so
+    every sample and every later write is what a buffer of the larger size gives."""
+    small, large = _filled(12, 9), _filled(30, 9)
+    grown = replay.resize(small, 30)
+    for k in large.data:
+        np.testing.assert_array_equal(np.asarray(grown.data[k]), np.asarray(large.data[k]))
+    assert int(grown.pos) == int(large.pos) == 9 and int(grown.count) == 9
+    key = jax.random.PRNGKey(3)
+    a, b = replay.sample(grown, key, 8, 3), replay.sample(large, key, 8, 3)
+    for k in a:
+        np.testing.assert_array_equal(np.asarray(a[k]), np.asarray(b[k]))
+    shrunk = replay.resize(large, 10)  # an old checkpoint's capacity-sized buffer, cut to the run
+    for k in shrunk.data:
+        np.testing.assert_array_equal(np.asarray(shrunk.data[k]), np.asarray(large.data[k][:10]))
+    after_a = replay.add(shrunk, _row(9, 2))
+    after_b = replay.add(large, _row(9, 2))
+    np.testing.assert_array_equal(
+        np.asarray(after_a.data["obs"][:10]), np.asarray(after_b.data["obs"][:10])
+    )
+
+
+def test_resizing_a_wrapped_buffer_keeps_the_newest_rows_in_time_order():
+    state = _filled(5, 8)  # rows 0..7 written into 5: rows 3..7 remain, the oldest (3) at pos 3
+    assert int(state.pos) == 3
+    grown = replay.resize(state, 7)
+    obs_t = np.asarray(grown.data["obs"][:, 0, 0])
+    np.testing.assert_array_equal(obs_t, [3, 4, 5, 6, 7, 0, 0])
+    assert int(grown.pos) == 5 and int(grown.count) == 5
+    shrunk = replay.resize(state, 3)
+    np.testing.assert_array_equal(np.asarray(shrunk.data["obs"][:, 0, 0]), [5, 6, 7])
+    assert int(shrunk.pos) == 0 and int(shrunk.count) == 3
+    np.testing.assert_array_equal(np.asarray(shrunk.data["is_first"][:, 0]), [False, False, False])
+    first = np.asarray(grown.data["is_first"][:, 0])
+    np.testing.assert_array_equal(first, [False, True] + [False] * 5)

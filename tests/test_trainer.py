@@ -141,6 +141,61 @@ def test_a_resume_that_trains_longer_records_the_new_length(tmp_path):
     assert saved["run"]["steps"] == 2 * chunk
 
 
+def test_the_replay_holds_exactly_the_rows_the_run_writes(runs):
+    """Sized to the run (a 100k pixel run: 0.6 GiB per seed, not the 2.9 GiB of a 500k
+    capacity), and nothing written is ever overwritten: full at the end, the first row intact."""
+    from mjx_collo import rollout
+
+    cfg, (_, state), _ = runs
+    rows = rollout.run_replay_rows(cfg)
+    assert rows < cfg.replay.capacity // cfg.env.action_repeat // cfg.run.num_envs
+    assert np.asarray(state.replay.data["is_first"]).shape[1] == rows
+    np.testing.assert_array_equal(np.asarray(state.replay.count), [rows, rows])
+    assert np.asarray(state.replay.data["is_first"])[:, 0].all()
+
+
+@pytest.mark.parametrize("first_buffer", ["sized_to_a_shorter_run", "capacity_sized_old_format"])
+def test_an_extended_or_old_checkpoint_resumes_bit_for_bit(
+    runs, tmp_path, monkeypatch, first_buffer
+):
+    """Run A's first chunk saved by a run of one chunk (its replay sized to that chunk), or by the
+    code before replays were sized to the run (capacity-sized, no row count in the checkpoint);
+    resumed for A's whole length, the buffer is moved to A's size and the result is A's, bit for
+    bit."""
+    from mjx_collo import rollout
+
+    cfg, (res_a, state_a), _ = runs
+    chunk = cfg.run.chunk_env_steps
+    quiet = dict(num_seeds=2, progress=False, log=lambda *_: None)
+    short = debug_cfg(overrides=[f"run.steps={chunk}"])
+    with monkeypatch.context() as m:
+        if first_buffer == "capacity_sized_old_format":
+            m.setattr(rollout, "run_replay_rows", lambda cfg: 10**9)
+        first = runner.Run(short, make_env(short), tmp_path / "r", **quiet)
+        first.run()
+        rows_first = np.asarray(first.state.replay.data["is_first"]).shape[1]
+        first.close()
+    if first_buffer == "capacity_sized_old_format":
+        assert rows_first == cfg.replay.capacity // cfg.env.action_repeat // cfg.run.num_envs
+        meta_file = tmp_path / "r" / "checkpoints" / str(chunk) / "meta" / "metadata"
+        meta = json.loads(meta_file.read_text())
+        del meta["replay_rows"]
+        meta_file.write_text(json.dumps(meta))
+    else:
+        assert rows_first == rollout.run_replay_rows(short)
+    again = runner.Run(cfg, make_env(cfg), tmp_path / "r", **quiet)
+    res = again.run()
+    state = jax.device_get(again.state)
+    again.close()
+    assert len(res.chunk_s) == 1
+    leaves_a, tree_a = jax.tree.flatten(state_a)
+    leaves, tree = jax.tree.flatten(state)
+    assert tree == tree_a
+    for i, (a, b) in enumerate(zip(leaves_a, leaves, strict=True)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"leaf {i}")
+    np.testing.assert_array_equal(res_a.eval_returns[-1][1], res.eval_returns[-1][1])
+
+
 def test_seeds_differ_in_init_and_data(runs):
     _, (_, state), _ = runs
     w = jax.tree.leaves(state.wm)
