@@ -30,7 +30,7 @@ TEST_WORKERS ?= 2
 export PYTHONWARNINGS ?= ignore::DeprecationWarning
 
 # preview: our frames beside MuJoCo's render of the same states (ENV=<task> or ENV=all), in preview/.
-.PHONY: gl preview bench-render install train sweep eval combine study report test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality clean
+.PHONY: gl preview bench-render install train sweep eval combine study report test test-all lint format bench bench-envs bench-model bench-planner bench-plan-quality bench-conv clean
 
 install: $(STAMP)
 
@@ -102,6 +102,10 @@ bench-render: install
 
 bench-planner: install
 	$(PY) benchmarks/bench_planner.py $(ARGS)
+
+# Pixel world model: ms per conv layer, forward + backward, as the training loop runs it.
+bench-conv: install
+	$(PY) benchmarks/bench_conv.py $(ARGS)
 
 # Planner defaults are judged here: a trained cheetah model (benchmarks/fixtures), real returns.
 bench-plan-quality: install
