@@ -154,7 +154,10 @@ def _plot_curves(task: str, series: list[Series], path: Path) -> None:
     ax.set_ylabel("eval return")
     ax.set_title(f"{task}: mean and 95% bootstrap CI over seeds")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    if ax.lines:
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no evaluations yet", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -255,6 +258,15 @@ def _task_block(
     return lines
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the working directory when it lies below it (a committed report
+    names ``results/study/<name>``, not the machine it was made on)."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
 def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
     """Write ``out_md`` and its PNGs (in ``<out_md stem>/``) from the cells under ``results``."""
     out_dir = out_md.parent / out_md.stem
@@ -282,7 +294,7 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
         lines += [cfg.description.strip(), ""]
     lines += [
         f"Made by `make study STUDY={name}` and `make report STUDY={name}` from the cells' "
-        f"metrics in `{results}`. {cfg.seeds} seeds per cell; eval return is the mean of the "
+        f"metrics in `{_shown(results)}`. {cfg.seeds} seeds per cell; eval return is the mean of the "
         "run's deterministic evaluation episodes; brackets are 95% percentile-bootstrap CIs over "
         "seeds (rliable).",
         "",
