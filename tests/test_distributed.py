@@ -118,6 +118,21 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert {r["seed"] for r in rows} == set(range(seeds))
     assert (run / "checkpoints" / "800").is_dir()
+    if seeds != 4:
+        return
+    # trained further: the sharded replay, sized for 800 env steps, grows on resume (replay.resize)
+    longer = subprocess.run(
+        _train_debug(seeds=seeds, steps=1200, run=run),
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=ROOT,
+    )
+    assert longer.returncode == 0, (
+        f"stdout:\n{longer.stdout[-2000:]}\nstderr:\n{longer.stderr[-3000:]}"
+    )
+    assert "resumed from" in longer.stdout and (run / "checkpoints" / "1200").is_dir()
 
 
 def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_path):
