@@ -96,7 +96,7 @@ def _on_this_host(abstract: Any) -> Any:
     return None if abstract is None else jax.tree.map(place, abstract)
 
 
-def _replay_rows(replay: Any) -> int:
+def replay_rows(replay: Any) -> int:
     """Rows per env of a seed-stacked replay (``[seeds, rows, envs, ...]`` leaves)."""
     return int(next(iter(replay.data.values())).shape[1])
 
@@ -114,7 +114,7 @@ def _with_rows(abstract: Any, rows: int) -> Any:
 def _resized(replay: Any, abstract: Any) -> Any:
     """A restored seed-stacked replay moved to ``abstract``'s rows per env (replay.resize), on
     ``abstract``'s shardings."""
-    rows = _replay_rows(abstract)
+    rows = replay_rows(abstract)
     out = jax.jit(jax.vmap(lambda r: replay_lib.resize(r, rows)))(replay)
     return jax.tree.map(
         lambda x, a: jax.device_put(x, a.sharding) if getattr(a, "sharding", None) else x,
@@ -265,21 +265,21 @@ class Checkpointer:
             items = {"train": ocp.args.StandardRestore(_strip_empty(abstract_train))}
             saved_replay = None
             if abstract_replay is not None and meta.get("has_replay"):
-                saved_replay = _with_rows(abstract_replay, self._saved_rows(meta))
+                saved_replay = _with_rows(abstract_replay, self.saved_replay_rows(meta))
                 items["replay"] = ocp.args.StandardRestore(_strip_empty(saved_replay))
             out = self.manager.restore(s, args=ocp.args.Composite(**items))
             train = _fill_empty(abstract_train, out["train"])
             replay = _fill_empty(saved_replay, out["replay"]) if "replay" in items else None
             if not all_finite(train):
                 raise ValueError("the restored state holds NaN/inf")
-            if replay is not None and _replay_rows(replay) != _replay_rows(abstract_replay):
+            if replay is not None and replay_rows(replay) != replay_rows(abstract_replay):
                 replay = _resized(replay, abstract_replay)
             return train, replay, meta
 
         (train, replay, meta), s = self._first_usable(load, on_skip, [step] if step else None)
         return train, replay, meta, s
 
-    def _saved_rows(self, meta: dict) -> int:
+    def saved_replay_rows(self, meta: dict) -> int:
         """Rows per env of a step's saved replay: recorded since replays are sized to the run;
         before that, always the capacity's (replay.rows_per_env without a run)."""
         if "replay_rows" in meta:

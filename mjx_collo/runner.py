@@ -291,6 +291,13 @@ class Run:
         self.log(
             f"resumed from {self.dir / 'checkpoints' / str(step)} (env step {meta['env_steps']})"
         )
+        if replay is not None and meta.get("has_replay"):
+            saved, rows = self.ckpt.saved_replay_rows(meta), ckpt_lib.replay_rows(abstract.replay)
+            if saved != rows:
+                self.log(
+                    f"replay moved from {saved} to {rows} rows per env: sized to this run's "
+                    f"{self.cfg.run.steps} env steps (replay.resize)"
+                )
         if self.main:  # the config in force now: a resume may change run.steps or eval_overlap
             config_lib.dump_yaml(self.cfg, self.dir / "config.yaml")
         return state, int(meta["iteration"])
@@ -307,7 +314,7 @@ class Run:
                 "env_steps": env_steps,
                 "num_runs": self.num_runs,
                 "labels": self.labels,
-                "replay_rows": int(next(iter(state.replay.data.values())).shape[1]),
+                "replay_rows": ckpt_lib.replay_rows(state.replay),
             },
         )
         if wait:

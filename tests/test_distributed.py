@@ -133,6 +133,7 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
         f"stdout:\n{longer.stdout[-2000:]}\nstderr:\n{longer.stderr[-3000:]}"
     )
     assert "resumed from" in longer.stdout and (run / "checkpoints" / "1200").is_dir()
+    assert "replay moved from 205 to 307 rows per env" in longer.stdout
 
 
 def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_path):
