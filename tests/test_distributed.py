@@ -52,6 +52,14 @@ def _train_debug(seeds: int, steps: int, run: Path) -> list[str]:
     ]
 
 
+def _train_ok(cmd: list[str], env: dict) -> subprocess.CompletedProcess:
+    """Run a ``train.py`` command line in the repository; fail with its output tails unless it
+    exits 0."""
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-2000:]}\nstderr:\n{proc.stderr[-3000:]}"
+    return proc
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -103,15 +111,7 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
     run = tmp_path / f"seeds{seeds}"
     env = _env()
     env.pop("XLA_FLAGS", None)
-    proc = subprocess.run(
-        _train_debug(seeds=seeds, steps=800, run=run),
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=ROOT,
-    )
-    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-2000:]}\nstderr:\n{proc.stderr[-3000:]}"
+    proc = _train_ok(_train_debug(seeds=seeds, steps=800, run=run), env)
     devices = host_devices.configure(seeds, {})
     split = f"{devices} cpu devices ({seeds // devices} run(s) each)"
     assert f"seed axis sharded over {split}" in proc.stdout
@@ -121,17 +121,7 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
     if seeds != 4:
         return
     # trained further: the sharded replay, sized for 800 env steps, grows on resume (replay.resize)
-    longer = subprocess.run(
-        _train_debug(seeds=seeds, steps=1200, run=run),
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        cwd=ROOT,
-    )
-    assert longer.returncode == 0, (
-        f"stdout:\n{longer.stdout[-2000:]}\nstderr:\n{longer.stderr[-3000:]}"
-    )
+    longer = _train_ok(_train_debug(seeds=seeds, steps=1200, run=run), env)
     assert "resumed from" in longer.stdout and (run / "checkpoints" / "1200").is_dir()
     assert "replay moved from 205 to 307 rows per env" in longer.stdout
 
@@ -145,17 +135,7 @@ def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_pat
     returns = {}
     for name, extra in (("overlap", []), ("inline", ["run.eval_overlap=false"])):
         run = tmp_path / name
-        proc = subprocess.run(
-            _train_debug(seeds=1, steps=800, run=run) + extra,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=900,
-            cwd=ROOT,
-        )
-        assert proc.returncode == 0, (
-            f"stdout:\n{proc.stdout[-2000:]}\nstderr:\n{proc.stderr[-3000:]}"
-        )
+        proc = _train_ok(_train_debug(seeds=1, steps=800, run=run) + extra, env)
         overlapped = "evaluations run on cpu device 1 while the next chunk trains" in proc.stdout
         assert overlapped == (name == "overlap"), proc.stdout[-2000:]
         rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
