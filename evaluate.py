@@ -57,7 +57,11 @@ def main(argv=None) -> int:
         update={"run": cfg.run.model_copy(update={"eval_episodes": args.episodes})}
     )
     env = envs.from_config(cfg.env)
-    tr = trainer.make_train(cfg_eval, env)
+    try:
+        tr = trainer.make_train(cfg_eval, env)
+    except config.ConfigError as e:  # an override that this checkpoint's agent cannot act with
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     labels = meta["labels"]
     n = meta["num_runs"]
     try:

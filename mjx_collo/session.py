@@ -143,6 +143,12 @@ def eval_config(cfg: Config, overrides: list[str]) -> Config:
             "actor is their policy; switch between the planners (latco, collodreamer, cem, mppi, "
             "mppi_value) instead"
         )
+    if uses_prior(cfg) and not uses_prior(new):
+        # Acting without the prior its checkpoint holds (the planner alone: planner.init=cem, or
+        # another planner.kind): actor.pg / bc / starts said how the prior trained, which an
+        # evaluation does not do; the no-prior config takes their neutral values.
+        actor = new.actor.model_copy(update={"pg": 1.0, "bc": 0.0, "starts": 0})
+        new = new.model_copy(update={"actor": actor})
     return new
 
 

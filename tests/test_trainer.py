@@ -329,6 +329,41 @@ def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(runs, overri
     assert message in err, err
 
 
+def test_make_eval_acts_with_the_prior_alone_or_the_planner_alone(tmp_path):
+    """A checkpoint trained with the policy prior (planner.init=policy_cem) is evaluated three
+    ways on the same episodes, as docs/ALGORITHM.md §4.10 tells users to: as trained, with the
+    prior alone (its rollout is the plan: planner.iters=0 planner.init=policy) and with the
+    planner alone (planner.init=cem, whose config has no prior to train: the prior's training
+    keys must not refuse it). A planner that cannot start from the prior is one line naming the
+    fix."""
+    run = tmp_path / "run"
+    proc = _cli(
+        "train.py",
+        ["--env", TASK, "--preset", "debug", "--seeds", "1", "--steps", "400", "--run", str(run)]
+        + ["--no-progress", "planner.init=policy_cem", "actor.starts=8"],
+    )
+    assert proc.returncode == 0, proc.stderr
+    results = {}
+    for name, overrides in {
+        "both": [],
+        "prior": ["planner.iters=0", "planner.init=policy"],
+        "planner": ["planner.init=cem"],
+    }.items():
+        out = tmp_path / name
+        proc = _cli(
+            "evaluate.py", ["--ckpt", str(run), "--episodes", "2", "--out", str(out)] + overrides
+        )
+        assert proc.returncode == 0, (proc.stdout, proc.stderr)
+        results[name] = json.loads((out / "eval_400.json").read_text())
+        assert results[name]["overrides"] == overrides
+        assert np.all(np.isfinite(results[name]["runs"][0]["returns"]))
+    assert results["prior"]["planner"]["init"] == "policy"
+    assert results["prior"]["planner"]["iters"] == 0
+    assert results["planner"]["planner"]["init"] == "cem"
+    err = _main_error(["--ckpt", str(run), "planner.kind=mppi_value"], "evaluate.py")
+    assert "planner.init=cem" in err, err
+
+
 def test_config_inconsistency_names_the_fix():
     with pytest.raises(config.ConfigError, match="multiple of run.chunk_env_steps"):
         trainer.validate(debug_cfg(overrides=["run.eval_every=500"]))
