@@ -3,7 +3,9 @@
 Deterministic episodes (no exploration noise) per seed with the saved parameters — the replay is
 not loaded. Prints a table of mean ± std return, writes ``eval_<step>.json`` (and with ``--video`` a GIF of
 one episode per seed, rendered on the CPU) next to the checkpoints. For a pixel run (``env.obs=pixels``)
-the video also comes as ``eval_<step>_run<i>_agent.gif``: the 64x64 frames the agent saw.
+the video also comes as ``eval_<step>_run<i>_agent.gif``: the 64x64 frames the agent saw. A run
+with a policy prior (``planner.init: policy_cem``) also reports the prior acting alone on the same
+episodes (``prior_mean_over_runs``), as its training evaluations log ``eval/return_prior``.
 """
 
 from __future__ import annotations
@@ -94,6 +96,11 @@ def main(argv=None) -> int:
         )
     means = returns.mean(1)
     print(f"{'all runs':<32s} {means.mean():8.1f} {means.std():8.1f}")
+    prior = np.asarray(out["returns_prior"]) if "returns_prior" in out else None
+    if prior is not None:  # the policy prior acting alone on the same episodes
+        for row, r in zip(rows, prior, strict=True):
+            row.update(prior_returns=r.tolist(), prior_mean=float(r.mean()))
+        print(f"{'the prior alone, all runs':<32s} {prior.mean(1).mean():8.1f}")
     result = {
         "task": cfg.env.task,
         "method": cfg.method,
@@ -105,6 +112,8 @@ def main(argv=None) -> int:
         "mean_over_runs": float(means.mean()),
         "std_over_runs": float(means.std()),
     }
+    if prior is not None:
+        result["prior_mean_over_runs"] = float(prior.mean(1).mean())
     if args.video:
         import imageio
 

@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 PLOTS = {
-    "returns.png": ("Return", ["eval/return", "train/return"]),
+    "returns.png": ("Return", ["eval/return", "eval/return_prior", "train/return"]),
     "world_model.png": (
         "World-model losses",
         ["wm/loss/obs", "wm/loss/reward", "wm/kl", "wm/loss/total", "wm/err/reward_mse"],

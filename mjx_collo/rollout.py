@@ -178,12 +178,17 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
             ep_return=jnp.zeros_like(s.ep_return),
         )
 
-    def evaluate(s: TrainState, key: jax.Array) -> dict[str, jax.Array]:
-        """``run.eval_episodes`` deterministic episodes (no noise, clipped actions) with the current
-        parameters; nothing is stored. Returns returns [episodes] and episode 0's qpos [T, nq]
-        (and the reacher target of episode 0, ``target_xy``, where the task has one)."""
+    def prior_alone(c: Config) -> Config:
+        """``c`` acting with its policy prior alone: the prior's rollout is the plan (no CEM, no
+        collocation steps), replanned as often as the planner."""
+        return c.model_copy(
+            update={"planner": c.planner.model_copy(update={"iters": 0, "init": "policy"})}
+        )
+
+    def episodes(s: TrainState, agent, key: jax.Array):
+        """``run.eval_episodes`` deterministic episodes of ``agent`` -> (env state, returns
+        [episodes], episode 0's qpos [T, nq])."""
         n = cfg.run.eval_episodes
-        _, agent = bind(s.hyper)
         k_env, k_carry, key = jax.random.split(key, 3)
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, n))
         vt = s.value.target if s.value is not None else None
@@ -212,9 +217,24 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
         (env_state, _, returns), qpos = jax.lax.scan(
             one_step, (env_state, carry, jnp.zeros((n,))), jnp.arange(episode_len)
         )
+        return env_state, returns, qpos
+
+    def evaluate(s: TrainState, key: jax.Array) -> dict[str, jax.Array]:
+        """``run.eval_episodes`` deterministic episodes (no noise, clipped actions) with the current
+        parameters; nothing is stored. Returns returns [episodes] and episode 0's qpos [T, nq]
+        (and the reacher target of episode 0, ``target_xy``, where the task has one).
+
+        A run with a policy prior also acts with the prior alone on the same episodes (the same
+        starts and keys): ``returns_prior`` [episodes], so every evaluation shows what the plan
+        adds to its start (docs/EXPERIMENTS.md: at 100k on cheetah, nothing on average)."""
+        c, agent = bind(s.hyper)
+        env_state, returns, qpos = episodes(s, agent, key)
         out = {"returns": returns, "qpos": qpos}
         if "target_xy" in env_state.info:
             out["target_xy"] = env_state.info["target_xy"][0]
+        if agent.uses_prior and (cfg.planner.iters > 0 or cfg.planner.init != "policy"):
+            prior = agent_lib.make_agent(prior_alone(c), action_dim)
+            out["returns_prior"] = episodes(s, prior, key)[1]
         return out
 
     return Rollout(

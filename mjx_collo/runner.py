@@ -401,7 +401,8 @@ class Run:
         return self.start_evaluation(state, env_steps).result()[0]
 
     def start_evaluation(self, state, env_steps: int) -> Future:
-        """Start the evaluation at ``env_steps``; the future gives ``(returns, seconds)``.
+        """Start the evaluation at ``env_steps``; the future gives ``(returns, seconds, the
+        returns of the policy prior acting alone on the same episodes or None)``.
 
         With an evaluation device the state is copied there (the copy done before this returns,
         since the next chunk takes the state's buffers) and the episodes run in a thread while
@@ -416,7 +417,7 @@ class Run:
         moved = jax.block_until_ready(jax.device_put((state, key), self.eval_device))
         return self._eval_pool.submit(self._evaluate, *moved)
 
-    def _evaluate(self, state, key) -> tuple[np.ndarray, float]:
+    def _evaluate(self, state, key) -> tuple[np.ndarray, float, np.ndarray | None]:
         t = time.perf_counter()
         if self._eval_compiled is None:  # AOT from shapes, like the chunk (see lower())
             sharding = (
@@ -429,7 +430,8 @@ class Run:
                 jax.tree.map(spec, state), jax.tree.map(spec, key)
             ).compile()
         out = host(self._eval_compiled(state, key))
-        return np.asarray(out["returns"]), time.perf_counter() - t  # returns: [S, episodes]
+        prior = np.asarray(out["returns_prior"]) if "returns_prior" in out else None
+        return np.asarray(out["returns"]), time.perf_counter() - t, prior  # [S, episodes]
 
     def run(self, total_env_steps: int | None = None, max_chunks: int | None = None) -> RunResult:
         cfg = self.cfg
@@ -478,19 +480,16 @@ class Run:
             if pending is None or not (block or pending[1].done()):
                 return
             (step, future), pending = pending, None
-            returns, secs = future.result()
+            returns, secs, prior = future.result()
             result.eval_s.append(secs)
             result.eval_returns.append((step, returns))
-            log.write(
-                step,
-                "eval",
-                {
-                    "eval/return": returns.mean(1),
-                    "eval/return_std": returns.std(1),
-                    "perf/eval_s": np.full(self.num_runs, secs),
-                    "perf/wall_s": wall(),
-                },
-            )
+            row = {"eval/return": returns.mean(1), "eval/return_std": returns.std(1)}
+            if prior is not None:  # the policy prior acting alone, same episodes
+                row.update(
+                    {"eval/return_prior": prior.mean(1), "eval/return_prior_std": prior.std(1)}
+                )
+            row.update({"perf/eval_s": np.full(self.num_runs, secs), "perf/wall_s": wall()})
+            log.write(step, "eval", row)
             log.progress(env_steps)
 
         chunks = 0

@@ -357,6 +357,16 @@ def test_make_eval_acts_with_the_prior_alone_or_the_planner_alone(tmp_path):
         results[name] = json.loads((out / "eval_400.json").read_text())
         assert results[name]["overrides"] == overrides
         assert np.all(np.isfinite(results[name]["runs"][0]["returns"]))
+    # every evaluation of a prior run also acts with the prior alone on the same episodes: in
+    # training (metrics.jsonl) and in make eval, where it matches the prior-alone evaluation
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    evals = [r for r in rows if r["kind"] == "eval"]
+    assert evals and all(np.isfinite(r["eval/return_prior"]) for r in evals)
+    both, prior = results["both"], results["prior"]
+    np.testing.assert_allclose(
+        both["prior_mean_over_runs"], prior["mean_over_runs"], rtol=1e-3, atol=1e-3
+    )
+    assert "prior_mean_over_runs" not in prior  # acting with the prior already
     assert results["prior"]["planner"]["init"] == "policy"
     assert results["prior"]["planner"]["iters"] == 0
     assert results["planner"]["planner"]["init"] == "cem"
