@@ -12,6 +12,7 @@ finished study reports what exists and marks what is missing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 from dataclasses import dataclass, field
@@ -39,6 +40,7 @@ class Series:
     sps_per_run: float = float("nan")
     runs: int = 0
     platforms: list[str] = field(default_factory=list)
+    prior_alone: bool = False  # the same runs acting with their policy prior alone (no cost row)
 
     def at(self, step: int) -> np.ndarray | None:
         return self.evals.get(step)
@@ -75,15 +77,7 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
     for name in dict.fromkeys(names):
         idx = [i for i, x in enumerate(names) if x == name]
         s = Series(label=name, variant=variant.name, runs=len(idx), platforms=platforms)
-        by_step: dict[int, dict[int, float]] = {}
-        for r in rows:
-            if r["seed"] in idx and r["kind"] == "eval" and "eval/return" in r:
-                by_step.setdefault(r["step"], {})[r["seed"]] = r["eval/return"]
-        s.evals = {
-            k: np.array([v[i] for i in idx])
-            for k, v in sorted(by_step.items())
-            if len(v) == len(idx)
-        }
+        s.evals = _evals(rows, idx, "eval/return")
         walls = [r["perf/wall_s"] for r in rows if "perf/wall_s" in r]
         s.wall_s = max(walls) if walls else float("nan")
         train = [r for r in rows if r["kind"] == "train" and r["seed"] == idx[0]]
@@ -91,7 +85,23 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
         sps = [r["perf/env_steps_per_s"] for r in train if "perf/env_steps_per_s" in r]
         s.sps_per_run = float(np.median(sps)) if sps else float("nan")
         out[name] = s
+        prior = _evals(rows, idx, "eval/return_prior")
+        if prior:  # a policy-prior run's evaluations of the prior acting alone, same episodes
+            out[name + ", prior alone"] = dataclasses.replace(
+                s, label=name + ", prior alone", evals=prior, prior_alone=True
+            )
     return list(out.values())
+
+
+def _evals(rows: list[dict], idx: list[int], key: str) -> dict[int, np.ndarray]:
+    """env step -> ``key`` of the runs ``idx`` (steps where every one of them has it)."""
+    by_step: dict[int, dict[int, float]] = {}
+    for r in rows:
+        if r["seed"] in idx and r["kind"] == "eval" and key in r:
+            by_step.setdefault(r["step"], {})[r["seed"]] = r[key]
+    return {
+        k: np.array([v[i] for i in idx]) for k, v in sorted(by_step.items()) if len(v) == len(idx)
+    }
 
 
 def _k(steps: int) -> str:
@@ -282,7 +292,7 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
         if reached < cell.steps:
             missing.append(f"{cell.key}: {_k(reached)} of {_k(cell.steps)} env steps")
         for s in series:
-            if s.env_steps:
+            if s.env_steps and not s.prior_alone:
                 cost_rows.append(
                     f"| {cell.task} | {s.label} | {s.runs} | {_k(s.env_steps)} | "
                     f"{s.wall_s / 60:.0f} | {s.sps_per_run:.1f} | {s.sps_per_run * s.runs:.1f} | "
@@ -299,6 +309,13 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
         "seeds (rliable).",
         "",
     ]
+    if any(s.prior_alone for ss in data.values() for s in ss):
+        lines += [
+            "A row or curve named *..., prior alone* is the same runs acting with their policy "
+            "prior alone (its rollout is the plan) on the same evaluation episodes, logged beside "
+            "every evaluation as `eval/return_prior`: what the plan adds to its start.",
+            "",
+        ]
     if partial:
         lines += (
             ["**Partial:** these cells have not finished:", ""] + [f"- {m}" for m in missing] + [""]

@@ -187,6 +187,37 @@ def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
     mean, lo, hi = 60.0, 50.0, 70.0
     assert f"{mean:.0f} [{lo:.0f}, {hi:.0f}]" in line
     assert "| *random policy* | 43.1 |" in md  # an anchor: a row, in its budget's column
+
+
+def test_a_prior_runs_prior_alone_evaluations_are_a_series_of_their_own(tmp_path):
+    """A cell whose runs log ``eval/return_prior`` (a policy-prior run) reports it as a second
+    series, "<variant>, prior alone", in the task table, with no cost row of its own."""
+    _, cfg = study.load(str(SMOKE))
+    cell = tmp_path / "results" / "reacher_easy" / "collodreamer"
+    cell.mkdir(parents=True)
+    rows = []
+    for step in (400, 800):
+        for seed, (r, p) in enumerate(((50.0, 80.0), (70.0, 100.0))):
+            rows.append({"step": step, "seed": seed, "kind": "train", "perf/wall_s": 1.0})
+            rows.append(
+                {
+                    "step": step,
+                    "seed": seed,
+                    "kind": "eval",
+                    "eval/return": r,
+                    "eval/return_prior": p,
+                }
+            )
+    (cell / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    variant = next(v for v in cfg.variants if v.name == "collodreamer")
+    planned, prior = report.load_cell(cell, variant)
+    assert planned.label == "collodreamer" and prior.label == "collodreamer, prior alone"
+    np.testing.assert_array_equal(planned.at(800), [50.0, 70.0])
+    np.testing.assert_array_equal(prior.at(800), [80.0, 100.0])
+    md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
+    assert next(x for x in md.splitlines() if x.startswith("| collodreamer, prior alone (n=2) |"))
+    assert "prior alone" in md.split("## Cost")[0]
+    assert "prior alone" not in md.split("## Cost")[1].split("##")[0]
     assert np.isclose(report._ci(np.array([50.0, 70.0]))[0], 60.0)
 
 
