@@ -182,3 +182,21 @@ def test_brax_ppo_trains_on_our_task_unmodified():
     assert np.isfinite(float(progress[-1][1]["eval/episode_reward"]))
     leaves = jax.tree.leaves(params)
     assert leaves and all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+
+
+def test_quadruped_does_not_get_up_by_energy_injection():
+    """The tuned quadruped options must keep dm_control's physics where the task's return is
+    decided: getting off its back. Under forceful, temporally correlated actions (pink noise, what
+    a learned policy produces, unlike the uniform random actions of the return test), dm_control's
+    options never get the body up from 40 down starts and never go unstable; the options chosen
+    until 2026-12-06 (2 / 4 iterations, eulerdamp off) got up from about half of them by energy
+    injection and went unstable in a sixth (envs/assets/README.md). Native MuJoCo on the same
+    MjModel options MJX runs (MJX float32 showed the same pattern)."""
+    from envs import quadruped
+
+    floor = quadruped.DEFAULT_TIME_LIMIT * quadruped.WALK_SPEED
+    ref_up, ref_unstable = quadruped.get_up_trials(quadruped.build_model("dmc", floor), 40)
+    up, unstable = quadruped.get_up_trials(quadruped.build_model("tuned", floor), 40)
+    assert (ref_up, ref_unstable) == (0, 0), "dm_control's options changed: recheck the reference"
+    assert unstable == 0, f"tuned quadruped went unstable in {unstable} of 40 episodes"
+    assert up <= ref_up + 2, f"tuned quadruped got up from {up} of 40 down starts (dm_control: 0)"

@@ -1,0 +1,182 @@
+"""Why does quadruped_walk plateau near 150? Getting up, measured three ways.
+
+``python benchmarks/probe_quadruped.py RUN_DIR [RUN_DIR ...]`` (quadruped run directories with a
+checkpoint that holds the replay; ``make study``'s cells do)
+
+dm_control's quadruped starts each episode in a uniformly random orientation, so about three
+starts in four land on the back or side, where the task pays almost nothing (its upright factor
+is 0 upside down). An agent that walks only from the starts that land on their feet scores about
+a quarter of its walking return. The probe separates "cannot walk" from "cannot get up":
+
+1. physics: from random starts that land down, how often colored-noise actions get the body up
+   and how often the physics goes unstable, per MjModel option set (native MuJoCo,
+   envs.quadruped.get_up_trials). dm_control's options: never; faithful options must agree;
+2. training data: in each run's replay (newest checkpoint), the episodes that started down
+   (torso upright < 0.5 at the first step) and ended up (mean upright > 0.8 over the last 100 agent
+   steps) -- a world model cannot predict getting up from data that never shows it;
+3. evaluations: each logged evaluation's starts are re-drawn from the run's keys (as
+   runner.start_evaluation and rollout.episodes draw them) and the logged mean return is split by
+   least squares into a return per start that lands on its feet and per start that does not.
+
+Writes ``bench_results/quadruped_probe.json`` (one entry per run directory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+UP = 0.5  # a start "on its feet": torso z-axis within 60 degrees of vertical
+ENDED_UP = 0.8
+
+
+def physics_check(starts: int) -> dict:
+    """Getting up under pink-noise actions (envs.quadruped.get_up_trials) with dm_control's options,
+    the tuned options, and the tuned options chosen until 2026-12-06 (2 / 4, eulerdamp off)."""
+    from envs import base, quadruped
+
+    floor = quadruped.DEFAULT_TIME_LIMIT * quadruped.WALK_SPEED
+    old = quadruped.build_model("tuned", floor)
+    base.tune_solver(old, 2, 4, eulerdamp=False)
+    models = {
+        "dmc": quadruped.build_model("dmc", floor),
+        "tuned": quadruped.build_model("tuned", floor),
+        "tuned until 2026-12-06 (2 / 4, eulerdamp off)": old,
+    }
+    out = {}
+    for name, m in models.items():
+        for beta in (1.0, 2.0):
+            up, unstable = quadruped.get_up_trials(m, starts, beta)
+            out[f"{name}, beta {beta:g}"] = {"starts": starts, "got_up": up, "unstable": unstable}
+            print(
+                f"physics {name}, colored noise beta {beta:g}: got up from {up} of {starts} "
+                f"down starts, {unstable} unstable"
+            )
+    return out
+
+
+def probe_run(run: Path) -> dict:
+    import jax
+    import mujoco
+    import numpy as np
+
+    import envs
+    from mjx_collo import checkpoint, parallel, session
+
+    ck = checkpoint.Checkpointer(run, read_only=True)
+    _, meta = ck.newest_meta()
+    cfg = ck.config_of(meta)
+    env = envs.from_config(cfg.env)
+    base = env.unwrapped
+    if not hasattr(base, "_hinge_q"):
+        raise SystemExit(f"error: {run} is a {cfg.env.task} run; the probe reads quadruped runs")
+    state, keys, step = session.restore_state(ck, cfg, env, meta, replay=True)
+    # the observation's torso-upright entry: ego (hinge q, hinge v, act), velocimeter (3), upright
+    ui = len(base._hinge_q) + len(base._hinge_v) + base.mj_model.na + 3
+    obs = np.asarray(state.replay.data["obs"])[:, :, 0, ui]  # [runs, rows]
+    first = np.asarray(state.replay.data["is_first"])[:, :, 0]
+    count = np.broadcast_to(np.asarray(state.replay.count), (obs.shape[0],))
+    training = []
+    for s in range(obs.shape[0]):
+        up, f = obs[s, : count[s]], np.flatnonzero(first[s, : count[s]])
+        eps = [up[a:b] for a, b in zip(f, [*f[1:], count[s]], strict=True) if b - a > 400]
+        down = [u for u in eps if u[0] < UP]
+        got_up = sum(u[-100:].mean() > ENDED_UP for u in down)
+        on_feet = [u for u in eps if u[0] >= UP]
+        fell = sum(u[-100:].mean() <= ENDED_UP for u in on_feet)
+        training.append(
+            {
+                "episodes": len(eps),
+                "started_down": len(down),
+                "got_up": int(got_up),
+                "started_on_feet": len(on_feet),
+                "ended_down": int(fell),
+            }
+        )
+        print(
+            f"{run.name} run {s} replay ({step} env steps): {len(eps)} episodes, "
+            f"{len(down)} started down, {got_up} of them got up; "
+            f"{len(on_feet)} started on their feet, {fell} of them ended down"
+        )
+
+    torso = mujoco.mj_name2id(base.mj_model, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    n = cfg.run.eval_episodes
+    seed_keys = parallel.seed_keys(cfg, meta["num_runs"])
+
+    @jax.jit
+    def starts(key):  # rollout.episodes: k_env, k_carry, key = split(key, 3)
+        k_env = jax.random.split(key, 3)[0]
+        st = jax.vmap(env.reset)(jax.random.split(k_env, n))
+        return st.pipeline_state.xmat[:, torso, 2, 2]
+
+    rows = []
+    for line in (run / "metrics.jsonl").read_text().splitlines():
+        r = json.loads(line)
+        if r.get("kind") == "eval" and "eval/return" in r:
+            u = np.asarray(starts(jax.random.fold_in(seed_keys[r["seed"]], r["step"])))
+            rows.append(
+                {
+                    "step": r["step"],
+                    "seed": r["seed"],
+                    "mean_return": r["eval/return"],
+                    "starts_on_feet": int((u >= UP).sum()),
+                    "start_upright": np.round(u, 3).tolist(),
+                }
+            )
+    k = np.array([r["starts_on_feet"] for r in rows], float)
+    total = np.array([r["mean_return"] for r in rows]) * n  # summed over the episodes
+    a = np.stack([k, n - k], 1)  # total = k * R_feet + (n - k) * R_down
+    (r_feet, r_down), *_ = np.linalg.lstsq(a, total, rcond=None)
+    resid = total - a @ np.array([r_feet, r_down])
+    r2 = 1 - (resid**2).sum() / ((total - total.mean()) ** 2).sum()
+    print(
+        f"{run.name}, {len(rows)} evaluations of {n} episodes: return per start on its feet "
+        f"{r_feet:.0f}, per start down {r_down:.0f} (least squares, R^2 {r2:.2f}); "
+        f"starts on their feet: {int(k.sum())} of {int(n * len(rows))}"
+    )
+    by_step: dict[int, list] = {}
+    for r in rows:
+        by_step.setdefault(r["step"], []).append(r)
+    for st, rs in sorted(by_step.items()):
+        print(
+            f"  {st:>6d}: mean return {np.mean([r['mean_return'] for r in rs]):6.1f}, "
+            f"starts on their feet {sum(r['starts_on_feet'] for r in rs)}/{n * len(rs)}"
+        )
+    return {
+        "run": str(run),
+        "task": cfg.env.task,
+        "method": cfg.method,
+        "checkpoint_env_steps": int(step),
+        "training": training,
+        "eval_return_per_start_on_feet": float(r_feet),
+        "eval_return_per_start_down": float(r_down),
+        "eval_fit_r2": float(r2),
+        "evaluations": rows,
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("runs", nargs="+", help="quadruped run directories")
+    p.add_argument("--starts", type=int, default=60, help="down starts per physics check")
+    p.add_argument("--out", default=str(ROOT / "bench_results" / "quadruped_probe.json"))
+    args = p.parse_args(argv)
+
+    from mjx_collo import session
+
+    session.setup_jax()
+    result = {"physics": physics_check(args.starts), "runs": []}
+    for run in args.runs:
+        result["runs"].append(probe_run(Path(run)))
+    Path(args.out).write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
