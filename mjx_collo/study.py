@@ -10,7 +10,8 @@ when its run directory holds a checkpoint at the cell's last env step, or when i
 the cell's config. The second lets a study go on from a fresh clone or a wiped scratch disk
 without retraining what the repository already records. The resolved study config
 is stored in the study's root on its first run; a later run with a different config is refused,
-naming the keys that differ (a changed config would mix cells trained under two designs).
+naming the keys that differ (a changed config would mix cells trained under two designs); edits to
+the report's footnotes, description and anchors are taken.
 
 After each cell, and before it starts, the cell's small files (``config.yaml``, ``metrics.jsonl``,
 ``seeds.json``, ``host.json``) are copied to ``results/study/<name>/<task>/<variant>/``, the
@@ -285,8 +286,14 @@ def status(root: Path, cfg: StudyConfig, results: Path | None = None) -> dict[st
     return out
 
 
+# Study fields that only shape the report: editing them (a new footnote, an anchor column) changes
+# no cell, so a running study takes the edit instead of refusing it.
+REPORT_ONLY = ("description", "notes", "anchors")
+
+
 def pin_config(root: Path, cfg: StudyConfig) -> None:
-    """Store the study config in ``root`` on first use; refuse a different one later."""
+    """Store the study config in ``root`` on first use; refuse a different one later (edits to the
+    report-only fields, :data:`REPORT_ONLY`, are taken and stored)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     pinned = root / "study.yaml"
@@ -297,7 +304,11 @@ def pin_config(root: Path, cfg: StudyConfig) -> None:
     theirs = yaml.safe_load(pinned.read_text())
     if theirs == mine:
         return
-    a, b = config_lib.flatten(theirs), config_lib.flatten(mine)
+    a = config_lib.flatten({k: v for k, v in theirs.items() if k not in REPORT_ONLY})
+    b = config_lib.flatten({k: v for k, v in mine.items() if k not in REPORT_ONLY})
+    if a == b:
+        pinned.write_text(yaml.safe_dump(mine, sort_keys=False))
+        return
     diffs = [
         f"{k}: {a.get(k)!r} -> {b.get(k)!r}"
         for k in sorted(set(a) | set(b))

@@ -58,6 +58,12 @@ def test_a_study_started_with_another_config_is_refused_naming_the_keys(tmp_path
     changed = cfg.model_copy(update={"seeds": 3, "steps": 1200})
     with pytest.raises(study.StudyError, match=r"seeds: 2 -> 3; steps: 800 -> 1200"):
         study.pin_config(tmp_path, changed)
+    # a new footnote changes no cell: taken, and stored for the next comparison
+    noted = cfg.model_copy(update={"notes": [*cfg.notes, "a cell was rerun"]})
+    study.pin_config(tmp_path, noted)
+    assert "a cell was rerun" in (tmp_path / "study.yaml").read_text()
+    with pytest.raises(study.StudyError, match=r"seeds: 2 -> 3"):
+        study.pin_config(tmp_path, noted.model_copy(update={"seeds": 3}))
 
 
 def test_comparison_study_is_the_issue_grid():
