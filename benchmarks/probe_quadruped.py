@@ -1,4 +1,4 @@
-"""Why does quadruped_walk plateau near 150? Getting up, measured three ways.
+"""Why does quadruped_walk plateau near 150? Getting up, measured four ways.
 
 ``python benchmarks/probe_quadruped.py RUN_DIR [RUN_DIR ...]`` (quadruped run directories with a
 checkpoint that holds the replay; ``make study``'s cells do)
@@ -14,7 +14,9 @@ a quarter of its walking return. The probe separates "cannot walk" from "cannot 
 2. training data: in each run's replay (newest checkpoint), the episodes that started down
    (torso upright < 0.5 at the first step) and ended up (mean upright > 0.8 over the last 100 agent
    steps) -- a world model cannot predict getting up from data that never shows it;
-3. evaluations: each logged evaluation's starts are re-drawn from the run's keys (as
+3. planning with a perfect model: CEM on the true simulator from the back, white against
+   temporally correlated action samples (how findable getting up is, given the model);
+4. evaluations: each logged evaluation's starts are re-drawn from the run's keys (as
    runner.start_evaluation and rollout.episodes draw them) and the logged mean return is split by
    least squares into a return per start that lands on its feet and per start that does not.
 
@@ -58,6 +60,54 @@ def physics_check(starts: int) -> dict:
                 f"down starts, {unstable} unstable"
             )
     return out
+
+
+def perfect_model_cem(hold: int, samples: int = 200, iters: int = 30, seed: int = 0) -> list:
+    """CEM on the true simulator (dm_control's options, native MuJoCo) from the settled back pose:
+    150 control steps (3 s) of actions held for ``hold`` steps each, scored by the mean torso
+    upright over the last second; elites 10%, std floor 0.05. How findable getting up is for a
+    planner with a perfect model, with white (hold 1) against correlated (hold 10) samples.
+    Returns the best score per iteration."""
+    import mujoco
+    import numpy as np
+
+    from envs import quadruped
+
+    m = quadruped.build_model("dmc", quadruped.DEFAULT_TIME_LIMIT * quadruped.WALK_SPEED)
+    d = mujoco.MjData(m)
+    torso = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    sub = round(quadruped.CONTROL_DT / m.opt.timestep)
+    d.qpos[3:7] = [0, 1, 0, 0]  # upside down, dropped and settled for 2 s
+    d.qpos[2] = 0.6
+    mujoco.mj_step(m, d, nstep=100 * sub)
+    start = mujoco.MjData(m)
+    mujoco.mj_copyData(start, m, d)
+    steps, blocks = 150, 150 // hold
+
+    def score(a):
+        mujoco.mj_copyData(d, m, start)
+        ups = []
+        for k in range(steps):
+            d.ctrl[:] = a[k // hold]
+            mujoco.mj_step(m, d, nstep=sub)
+            ups.append(d.xmat[torso][8])
+        return float(np.mean(ups[-50:]))
+
+    rng = np.random.default_rng(seed)
+    mu, sd = np.zeros((blocks, m.nu)), np.ones((blocks, m.nu))
+    best = []
+    for _ in range(iters):
+        a = np.clip(mu + sd * rng.normal(size=(samples, blocks, m.nu)), -1, 1)
+        sc = np.array([score(x) for x in a])
+        elites = a[np.argsort(sc)[-samples // 10 :]]
+        mu, sd = elites.mean(0), elites.std(0) + 0.05
+        best.append(float(sc.max()))
+    print(
+        f"perfect-model CEM, actions held {hold} step(s), {samples} samples: best mean upright "
+        f"over the last second {best[0]:+.2f} after 1 iteration, {best[iters // 2 - 1]:+.2f} after "
+        f"{iters // 2}, {best[-1]:+.2f} after {iters} (-1 on the back, 0 on the side, 1 upright)"
+    )
+    return best
 
 
 def probe_run(run: Path) -> dict:
@@ -162,7 +212,7 @@ def probe_run(run: Path) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("runs", nargs="+", help="quadruped run directories")
+    p.add_argument("runs", nargs="*", help="quadruped run directories (none: parts 1 and 3 only)")
     p.add_argument("--starts", type=int, default=60, help="down starts per physics check")
     p.add_argument("--out", default=str(ROOT / "bench_results" / "quadruped_probe.json"))
     args = p.parse_args(argv)
@@ -171,6 +221,7 @@ def main(argv=None) -> int:
 
     session.setup_jax()
     result = {"physics": physics_check(args.starts), "runs": []}
+    result["perfect_model_cem"] = {f"hold {h}": perfect_model_cem(h) for h in (1, 10)}
     for run in args.runs:
         result["runs"].append(probe_run(Path(run)))
     Path(args.out).write_text(json.dumps(result, indent=1))
@@ -179,4 +230,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    from mjx_collo import xla_log_filter
+
+    xla_log_filter.install()
     sys.exit(main())
