@@ -148,6 +148,7 @@ class ShootingConfig(Section):
     min_std: float
     max_std: float
     warm_start: bool
+    color: Annotated[float, Field(ge=0.0)]
 
 
 class InitCEMConfig(Section):
@@ -155,6 +156,7 @@ class InitCEMConfig(Section):
     elites: int
     iters: int
     std: float
+    color: Annotated[float, Field(ge=0.0)]
 
 
 class PlannerConfig(Section):
@@ -340,6 +342,8 @@ ADDED_KEYS: dict[str, Any] = {
     "actor.bc": 0.0,
     "actor.starts": 0,
     "env.obs": "state",
+    "planner.init_cem.color": 0.0,
+    "planner.shooting.color": 0.0,
 }
 
 

@@ -88,6 +88,7 @@ def cem_actions(
         min_std=0.0,
         max_std=2.0,  # the CEM method's clamp
         warm_start=False,
+        color=ic.color,
     )
     sub = cfg.model_copy(
         update={"planner": cfg.planner.model_copy(update={"kind": "cem", "shooting": shoot})}

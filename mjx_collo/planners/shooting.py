@@ -8,6 +8,9 @@ to [-1, 1], rolls them out deterministically through the model and scores them b
 * ``mppi`` / ``mppi_value``: softmax(temperature * (score - max)) weights over the top ``elites``
   (LC's MPPI uses all samples as elites; TD-MPC2 uses 64 of 512), weighted mean and std;
 * std is clamped to [min_std, max_std]. The plan returned is the mean.
+
+``shooting.color`` > 0 draws the samples' noise correlated over the horizon (power spectrum
+~ 1/f^color, :mod:`mjx_collo.noise`; iCEM); 0, the default, is white noise, drawn exactly as before.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from mjx_collo import noise
 from mjx_collo.config import Config
 from mjx_collo.planners import objective as obj
 from mjx_collo.planners.objective import Problem
@@ -77,7 +81,12 @@ def optimize_shoot(
     score_fn = jax.vmap(lambda acts: sequence_return(prob, acts))
 
     def body(k, st: ShootState) -> ShootState:
-        eps = jax.random.normal(jax.random.fold_in(key, k), (sc.samples,) + st.mean.shape)
+        k_eps = jax.random.fold_in(key, k)
+        eps = (
+            jax.random.normal(k_eps, (sc.samples,) + st.mean.shape)
+            if isinstance(sc.color, float | int) and sc.color == 0
+            else noise.colored_normal(k_eps, (sc.samples,) + st.mean.shape, sc.color)
+        )
         samples = jnp.clip(st.mean + st.std * eps, -1.0, 1.0)
         score = score_fn(samples)
         score = jnp.where(jnp.isfinite(score), score, -jnp.inf)
