@@ -57,15 +57,22 @@ def get_up_trials(
     m: mujoco.MjModel, starts: int, beta: float = 1.0, seed: int = 0
 ) -> tuple[int, int]:
     """A physics check of a quadruped MjModel's options where quadruped_walk's return is decided:
-    from ``starts`` random orientations (dm_control's reset) that land down (torso upright < 0.5),
-    colored-noise actions (scale 1, clipped) for 500 agent steps of 2 control steps, in native
-    MuJoCo. Returns (episodes that got up: upright > 0.8 after the first 50 agent steps, episodes
-    that went unstable). dm_control's options: (0, 0) for 40 starts (envs/assets/README.md)."""
+    from ``starts`` uniformly random orientations (as dm_control's reset draws them, dropped from
+    0.7 m) that land down (torso upright < 0.5), colored-noise actions (scale 1, clipped) for 500
+    agent steps of 2 control steps, in native MuJoCo. Returns (episodes that got up: upright > 0.8
+    after the first 50 agent steps, episodes that went unstable: any of MuJoCo's bad position,
+    velocity or acceleration warnings, after which it resets the body to its upright home pose).
+    dm_control's options: (0, 0) for the 40 starts of the test and the 60 of envs/assets/README.md."""
     rng = np.random.default_rng(seed)
     d = mujoco.MjData(m)
     torso = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")
     substeps = round(CONTROL_DT / m.opt.timestep)
-    bad = mujoco.mjtWarning.mjWARN_BADQACC
+    w = mujoco.mjtWarning
+    warnings = [int(w.mjWARN_BADQPOS), int(w.mjWARN_BADQVEL), int(w.mjWARN_BADQACC)]
+
+    def unstable_count() -> int:
+        return sum(d.warning[w].number for w in warnings)
+
     got_up = unstable = done = 0
     while done < starts:
         mujoco.mj_resetData(m, d)
@@ -77,11 +84,11 @@ def get_up_trials(
         if d.xmat[torso][8] >= 0.5:
             continue
         done += 1
-        warned = d.warning[bad].number
+        warned = unstable_count()
         for k in range(500):
             d.ctrl[:] = actions[k]
             mujoco.mj_step(m, d, nstep=2 * substeps)
-            if d.warning[bad].number != warned:  # MuJoCo has reset the data: count, stop
+            if unstable_count() != warned:  # MuJoCo has reset the data: count, stop
                 unstable += 1
                 break
             if k > 50 and d.xmat[torso][8] > 0.8:

@@ -356,7 +356,7 @@ def complete_saved(tree: Mapping[str, Any]) -> dict[str, Any]:
         for p in path[:-1]:
             node = node.get(p) if isinstance(node, dict) else None
         if isinstance(node, dict) and path[-1] not in node:
-            node[path[-1]] = value
+            node[path[-1]] = copy.deepcopy(value)  # later entries may fill in its keys
     return out
 
 
