@@ -11,6 +11,10 @@ a quarter of its walking return. The probe separates "cannot walk" from "cannot 
 1. physics: from random starts that land down, how often colored-noise actions get the body up
    and how often the physics goes unstable, per MjModel option set (native MuJoCo,
    envs.quadruped.get_up_trials). dm_control's options: never; faithful options must agree;
+   1b. exploration: with dm_control's options, how far random actions of each kind (the
+   training noise around a still plan, white / pink / red noise at full scale, uniform actions
+   held for k steps) roll the body from a down start: how many reach their side (upright > 0) or
+   their feet, and the mean upright factor of the reward over the episode;
 2. training data: in each run's replay (newest checkpoint), the episodes that started down
    (torso upright < 0.5 at the first step) and ended up (mean upright > 0.8 over the last 100 agent
    steps) -- a world model cannot predict getting up from data that never shows it;
@@ -59,6 +63,70 @@ def physics_check(starts: int) -> dict:
                 f"physics {name}, colored noise beta {beta:g}: got up from {up} of {starts} "
                 f"down starts, {unstable} unstable"
             )
+    return out
+
+
+def exploration_reach(starts: int, seed: int = 0) -> dict:
+    """How far random actions roll the quadruped off its back (dm_control's options, native
+    MuJoCo, 500 agent steps of 2 control steps from down starts as get_up_trials draws them).
+    An agent's world model can predict only what such exploration shows it."""
+    import mujoco
+    import numpy as np
+
+    from envs import quadruped
+
+    m = quadruped.build_model("dmc", quadruped.DEFAULT_TIME_LIMIT * quadruped.WALK_SPEED)
+    d = mujoco.MjData(m)
+    torso = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")
+    substeps = round(quadruped.CONTROL_DT / m.opt.timestep)
+
+    def actions(rng, kind: str) -> np.ndarray:
+        if kind == "gaussian 0.3 (training noise around a still plan)":
+            return np.clip(0.3 * rng.normal(size=(500, m.nu)), -1, 1)
+        if kind.startswith("colored"):
+            beta = float(kind.split()[-1])
+            return np.clip(quadruped.colored_noise(rng, beta, 500, m.nu), -1, 1)
+        hold = int(kind.split()[-1])  # "uniform held k": piecewise constant uniform actions
+        return np.repeat(rng.uniform(-1, 1, (500 // hold + 1, m.nu)), hold, 0)[:500]
+
+    kinds = ["gaussian 0.3 (training noise around a still plan)"]
+    kinds += [f"colored beta {b:g}" for b in (0.0, 1.0, 2.0)]
+    kinds += [f"uniform held {k}" for k in (5, 10, 25)]
+    out = {}
+    for kind in kinds:
+        rng = np.random.default_rng(seed)
+        side = feet = done = 0
+        factor = []
+        while done < starts:
+            mujoco.mj_resetData(m, d)
+            quat = rng.normal(size=4)
+            d.qpos[3:7] = quat / np.linalg.norm(quat)
+            d.qpos[2] = 0.7
+            mujoco.mj_forward(m, d)
+            a = actions(rng, kind)
+            if d.xmat[torso][8] >= UP:
+                continue
+            done += 1
+            ups = []
+            for k in range(500):
+                d.ctrl[:] = a[k]
+                mujoco.mj_step(m, d, nstep=2 * substeps)
+                ups.append(d.xmat[torso][8])
+            settled = np.array(ups[25:])  # after the drop has landed
+            side += int(settled.max() > 0.0)
+            feet += int(settled.max() > UP)
+            factor.append(float(np.mean((settled + 1) / 2)))
+        out[kind] = {
+            "starts": starts,
+            "reached_side": side,
+            "reached_feet": feet,
+            "mean_upright_factor": float(np.mean(factor)),
+        }
+        print(
+            f"exploration {kind}: {side} of {starts} down starts reach their side, {feet} their "
+            f"feet; mean upright factor {np.mean(factor):.3f}",
+            flush=True,
+        )
     return out
 
 
@@ -221,6 +289,7 @@ def main(argv=None) -> int:
 
     session.setup_jax()
     result = {"physics": physics_check(args.starts), "runs": []}
+    result["exploration"] = exploration_reach(args.starts)
     result["perfect_model_cem"] = {f"hold {h}": perfect_model_cem(h) for h in (1, 10)}
     for run in args.runs:
         result["runs"].append(probe_run(Path(run)))
