@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     from mjx_collo import session
 
     try:
-        study.pin_config(root, cfg)
+        added = study.pin_config(root, cfg)
         lock = session.lock_run_dir(root)  # noqa: F841 (one study process per root)
     except (study.StudyError, session.RunLocked) as e:
         print(f"error: {e}", file=sys.stderr)
@@ -126,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     failed: list[str] = []
     trained = 0
     print(f"study {name}: {len(cells)} cells x {cfg.seeds} seeds -> {root}")
+    if added:
+        print(f"study {name} grew since it started: {', '.join(added)} (cells trained so far kept)")
     for i, cell in enumerate(cells, 1):
         run_dir = study.cell_dir(root, cell)
         if study.is_finished(root, cell):

@@ -11,7 +11,8 @@ the cell's config. The second lets a study go on from a fresh clone or a wiped s
 without retraining what the repository already records. The resolved study config
 is stored in the study's root on its first run; a later run with a different config is refused,
 naming the keys that differ (a changed config would mix cells trained under two designs); edits to
-the report's footnotes, description and anchors are taken.
+the report's footnotes, description and anchors are taken, and so is a grid that only grows (new
+variants or tasks: the cells trained so far stay what they were).
 
 After each cell, and before it starts, the cell's small files (``config.yaml``, ``metrics.jsonl``,
 ``seeds.json``, ``host.json``) are copied to ``results/study/<name>/<task>/<variant>/``, the
@@ -291,24 +292,47 @@ def status(root: Path, cfg: StudyConfig, results: Path | None = None) -> dict[st
 REPORT_ONLY = ("description", "notes", "anchors")
 
 
-def pin_config(root: Path, cfg: StudyConfig) -> None:
-    """Store the study config in ``root`` on first use; refuse a different one later (edits to the
-    report-only fields, :data:`REPORT_ONLY`, are taken and stored)."""
+def _grows(theirs: dict, mine: dict) -> list[str] | None:
+    """What ``mine`` adds to the pinned ``theirs`` when it only grows the grid: new variants, new
+    tasks, and nothing else changed (every pinned variant as it was, the same seeds, steps and
+    overrides), so that no cell trained so far would train differently. None otherwise."""
+    grid = ("tasks", "variants", *REPORT_ONLY)
+    if {k: v for k, v in theirs.items() if k not in grid} != {
+        k: v for k, v in mine.items() if k not in grid
+    }:
+        return None
+    if not set(theirs.get("tasks", [])) <= set(mine.get("tasks", [])):
+        return None
+    new = {v["name"]: v for v in mine.get("variants", [])}
+    if any(new.get(v["name"]) != v for v in theirs.get("variants", [])):
+        return None
+    old = {v["name"] for v in theirs.get("variants", [])}
+    added = [f"variant {n}" for n in new if n not in old]
+    added += [f"task {t}" for t in mine.get("tasks", []) if t not in theirs.get("tasks", [])]
+    return added or None
+
+
+def pin_config(root: Path, cfg: StudyConfig) -> list[str]:
+    """Store the study config in ``root`` on first use; refuse a different one later. Taken and
+    stored: edits to the report-only fields (:data:`REPORT_ONLY`), and a grid that only grows (new
+    variants or tasks beside unchanged ones: the cells trained so far stay valid). Returns what
+    the grid gained (empty when nothing did)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     pinned = root / "study.yaml"
     mine = cfg.model_dump(mode="json")
     if not pinned.exists():
         pinned.write_text(yaml.safe_dump(mine, sort_keys=False))
-        return
+        return []
     theirs = yaml.safe_load(pinned.read_text())
     if theirs == mine:
-        return
+        return []
     a = config_lib.flatten({k: v for k, v in theirs.items() if k not in REPORT_ONLY})
     b = config_lib.flatten({k: v for k, v in mine.items() if k not in REPORT_ONLY})
-    if a == b:
+    added = [] if a == b else _grows(theirs, mine)
+    if added is not None:
         pinned.write_text(yaml.safe_dump(mine, sort_keys=False))
-        return
+        return added
     diffs = [
         f"{k}: {a.get(k)!r} -> {b.get(k)!r}"
         for k in sorted(set(a) | set(b))
@@ -317,7 +341,8 @@ def pin_config(root: Path, cfg: StudyConfig) -> None:
     shown = "; ".join(diffs[:6]) + (f"; ... ({len(diffs)} in all)" if len(diffs) > 6 else "")
     raise StudyError(
         f"the study in {root} was started with a different config ({shown}); finish it with its "
-        f"own config ({pinned}), or give the changed study another RUN= directory"
+        f"own config ({pinned}), or give the changed study another RUN= directory (adding "
+        "variants or tasks is taken; changing or removing them is not)"
     )
 
 

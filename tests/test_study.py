@@ -66,6 +66,34 @@ def test_a_study_started_with_another_config_is_refused_naming_the_keys(tmp_path
         study.pin_config(tmp_path, noted.model_copy(update={"seeds": 3}))
 
 
+def test_a_study_may_grow_by_variants_and_tasks_but_not_change_its_cells(tmp_path):
+    """Adding a variant (a new candidate) or a task to a running study keeps every cell trained
+    so far valid, so it is taken; changing or dropping a variant, or a new variant together with
+    another change, is refused as any changed config is."""
+    _, cfg = study.load(str(SMOKE))
+    study.pin_config(tmp_path, cfg)
+    extra = study.Variant(name="more", method="collodreamer", overrides=["planner.iters=2"])
+    grown = cfg.model_copy(update={"variants": [*cfg.variants, extra]})
+    assert study.pin_config(tmp_path, grown) == ["variant more"]
+    assert "planner.iters=2" in (tmp_path / "study.yaml").read_text()
+    assert study.pin_config(tmp_path, grown) == []  # stored: the grown study resumes
+    more_tasks = grown.model_copy(update={"tasks": [*grown.tasks, "cheetah_run"]})
+    assert study.pin_config(tmp_path, more_tasks) == ["task cheetah_run"]
+    changed = cfg.variants[0].model_copy(update={"overrides": ["planner.iters=3"]})
+    for bad in (
+        more_tasks.model_copy(update={"variants": [changed, *more_tasks.variants[1:]]}),
+        more_tasks.model_copy(update={"variants": more_tasks.variants[1:]}),
+        more_tasks.model_copy(
+            update={
+                "variants": [*more_tasks.variants, extra.model_copy(update={"name": "again"})],
+                "steps": 1200,
+            }
+        ),
+    ):
+        with pytest.raises(study.StudyError, match="adding variants or tasks is taken"):
+            study.pin_config(tmp_path, bad)
+
+
 def test_comparison_study_is_the_issue_grid():
     _, cfg = study.load("comparison")
     keys = [c.key for c in study.cells(cfg)]
