@@ -16,8 +16,8 @@ a quarter of its walking return. The probe separates "cannot walk" from "cannot 
    held for k steps) roll the body from a down start: how many reach their side (upright > 0) or
    their feet, and the mean upright factor of the reward over the episode;
 2. training data: in each run's replay (newest checkpoint), the episodes that started down
-   (torso upright < 0.5 at the first step) and ended up (mean upright > 0.8 over the last 100 agent
-   steps) -- a world model cannot predict getting up from data that never shows it;
+   (torso upright < 0.5 at the first step), those that reached a side (upright > 0 once landed) and
+   those that ended up (mean upright > 0.8 over the last 100 agent steps) -- a world model cannot predict getting up from data that never shows it;
 3. planning with a perfect model: CEM on the true simulator from the back, white against
    temporally correlated action samples (how findable getting up is, given the model);
 4. evaluations: each logged evaluation's starts are re-drawn from the run's keys (as
@@ -205,6 +205,7 @@ def probe_run(run: Path) -> dict:
         eps = [up[a:b] for a, b in zip(f, [*f[1:], count[s]], strict=True) if b - a > 400]
         down = [u for u in eps if u[0] < UP]
         got_up = sum(u[-100:].mean() > ENDED_UP for u in down)
+        side = sum(u[25:].max() > 0.0 for u in down)  # rolled at least onto a side, once landed
         on_feet = [u for u in eps if u[0] >= UP]
         fell = sum(u[-100:].mean() <= ENDED_UP for u in on_feet)
         training.append(
@@ -212,13 +213,14 @@ def probe_run(run: Path) -> dict:
                 "episodes": len(eps),
                 "started_down": len(down),
                 "got_up": int(got_up),
+                "reached_side": int(side),
                 "started_on_feet": len(on_feet),
                 "ended_down": int(fell),
             }
         )
         print(
             f"{run.name} run {s} replay ({step} env steps): {len(eps)} episodes, "
-            f"{len(down)} started down, {got_up} of them got up; "
+            f"{len(down)} started down, {side} of them reached a side, {got_up} got up; "
             f"{len(on_feet)} started on their feet, {fell} of them ended down"
         )
 
