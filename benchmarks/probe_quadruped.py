@@ -98,13 +98,9 @@ def exploration_reach(starts: int, seed: int = 0) -> dict:
         side = feet = done = 0
         factor = []
         while done < starts:
-            mujoco.mj_resetData(m, d)
-            quat = rng.normal(size=4)
-            d.qpos[3:7] = quat / np.linalg.norm(quat)
-            d.qpos[2] = 0.7
-            mujoco.mj_forward(m, d)
+            upright = quadruped.random_drop(m, d, rng)
             a = actions(rng, kind)
-            if d.xmat[torso][8] >= UP:
+            if upright >= UP:
                 continue
             done += 1
             ups = []

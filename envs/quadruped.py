@@ -53,6 +53,17 @@ def colored_noise(rng: np.random.Generator, beta: float, steps: int, dims: int) 
     return x / x.std(0)
 
 
+def random_drop(m: mujoco.MjModel, d: mujoco.MjData, rng: np.random.Generator) -> float:
+    """Reset ``d`` to a uniformly random orientation 0.7 m above the floor, as dm_control's reset
+    draws a start, and return the torso's upright (the z component of its z-axis) at the drop."""
+    mujoco.mj_resetData(m, d)
+    quat = rng.normal(size=4)
+    d.qpos[3:7] = quat / np.linalg.norm(quat)
+    d.qpos[2] = 0.7
+    mujoco.mj_forward(m, d)
+    return float(d.xmat[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "torso")][8])
+
+
 def get_up_trials(
     m: mujoco.MjModel, starts: int, beta: float = 1.0, seed: int = 0
 ) -> tuple[int, int]:
@@ -75,13 +86,9 @@ def get_up_trials(
 
     got_up = unstable = done = 0
     while done < starts:
-        mujoco.mj_resetData(m, d)
-        quat = rng.normal(size=4)
-        d.qpos[3:7] = quat / np.linalg.norm(quat)
-        d.qpos[2] = 0.7
-        mujoco.mj_forward(m, d)
+        upright = random_drop(m, d, rng)
         actions = np.clip(colored_noise(rng, beta, 500, m.nu), -1, 1)
-        if d.xmat[torso][8] >= 0.5:
+        if upright >= 0.5:
             continue
         done += 1
         warned = unstable_count()
