@@ -11,7 +11,7 @@ the cell's config. The second lets a study go on from a fresh clone or a wiped s
 without retraining what the repository already records. The resolved study config
 is stored in the study's root on its first run; a later run with a different config is refused,
 naming the keys that differ (a changed config would mix cells trained under two designs); edits to
-the report's footnotes, description and anchors are taken, and so is a grid that only grows (new
+the report's footnotes, description, anchors and variant labels are taken, and so is a grid that only grows (new
 variants or tasks: the cells trained so far stay what they were).
 
 After each cell, and before it starts, the cell's small files (``config.yaml``, ``metrics.jsonl``,
@@ -292,11 +292,20 @@ def status(root: Path, cfg: StudyConfig, results: Path | None = None) -> dict[st
 REPORT_ONLY = ("description", "notes", "anchors")
 
 
+def _training(pinned: dict) -> dict:
+    """A study config less what only the report reads (:data:`REPORT_ONLY`, variant labels)."""
+    out = {k: v for k, v in pinned.items() if k not in REPORT_ONLY}
+    out["variants"] = [
+        {k: v for k, v in var.items() if k != "label"} for var in pinned.get("variants", [])
+    ]
+    return out
+
+
 def _grows(theirs: dict, mine: dict) -> list[str] | None:
     """What ``mine`` adds to the pinned ``theirs`` when it only grows the grid: new variants, new
     tasks, and nothing else changed (every pinned variant as it was, the same seeds, steps and
     overrides), so that no cell trained so far would train differently. None otherwise."""
-    grid = ("tasks", "variants", *REPORT_ONLY)
+    grid = ("tasks", "variants")
     if {k: v for k, v in theirs.items() if k not in grid} != {
         k: v for k, v in mine.items() if k not in grid
     }:
@@ -314,7 +323,7 @@ def _grows(theirs: dict, mine: dict) -> list[str] | None:
 
 def pin_config(root: Path, cfg: StudyConfig) -> list[str]:
     """Store the study config in ``root`` on first use; refuse a different one later. Taken and
-    stored: edits to the report-only fields (:data:`REPORT_ONLY`), and a grid that only grows (new
+    stored: edits to the report-only fields (:data:`REPORT_ONLY`, variant labels), and a grid that only grows (new
     variants or tasks beside unchanged ones: the cells trained so far stay valid). Returns what
     the grid gained (empty when nothing did)."""
     root = Path(root)
@@ -327,9 +336,9 @@ def pin_config(root: Path, cfg: StudyConfig) -> list[str]:
     theirs = yaml.safe_load(pinned.read_text())
     if theirs == mine:
         return []
-    a = config_lib.flatten({k: v for k, v in theirs.items() if k not in REPORT_ONLY})
-    b = config_lib.flatten({k: v for k, v in mine.items() if k not in REPORT_ONLY})
-    added = [] if a == b else _grows(theirs, mine)
+    a = config_lib.flatten(_training(theirs))
+    b = config_lib.flatten(_training(mine))
+    added = [] if a == b else _grows(_training(theirs), _training(mine))
     if added is not None:
         pinned.write_text(yaml.safe_dump(mine, sort_keys=False))
         return added

@@ -77,6 +77,9 @@ def test_a_study_may_grow_by_variants_and_tasks_but_not_change_its_cells(tmp_pat
     assert study.pin_config(tmp_path, grown) == ["variant more"]
     assert "planner.iters=2" in (tmp_path / "study.yaml").read_text()
     assert study.pin_config(tmp_path, grown) == []  # stored: the grown study resumes
+    relabelled = extra.model_copy(update={"label": "More updates"})  # a label is the report's
+    grown = grown.model_copy(update={"variants": [*cfg.variants, relabelled]})
+    assert study.pin_config(tmp_path, grown) == []
     more_tasks = grown.model_copy(update={"tasks": [*grown.tasks, "cheetah_run"]})
     assert study.pin_config(tmp_path, more_tasks) == ["task cheetah_run"]
     changed = cfg.variants[0].model_copy(update={"overrides": ["planner.iters=3"]})
