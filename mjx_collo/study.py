@@ -11,8 +11,8 @@ the cell's config. The second lets a study go on from a fresh clone or a wiped s
 without retraining what the repository already records. The resolved study config
 is stored in the study's root on its first run; a later run with a different config is refused,
 naming the keys that differ (a changed config would mix cells trained under two designs); edits to
-the report's footnotes, description, anchors and variant labels are taken, and so is a grid that only grows (new
-variants or tasks: the cells trained so far stay what they were).
+the report's footnotes, description, anchors and variant labels are taken, and so is a grid that
+only grows (new variants or tasks: the cells trained so far stay what they were).
 
 After each cell, and before it starts, the cell's small files (``config.yaml``, ``metrics.jsonl``,
 ``seeds.json``, ``host.json``) are copied to ``results/study/<name>/<task>/<variant>/``, the
@@ -323,9 +323,9 @@ def _grows(theirs: dict, mine: dict) -> list[str] | None:
 
 def pin_config(root: Path, cfg: StudyConfig) -> list[str]:
     """Store the study config in ``root`` on first use; refuse a different one later. Taken and
-    stored: edits to the report-only fields (:data:`REPORT_ONLY`, variant labels), and a grid that only grows (new
-    variants or tasks beside unchanged ones: the cells trained so far stay valid). Returns what
-    the grid gained (empty when nothing did)."""
+    stored: edits to the report-only fields (:data:`REPORT_ONLY`, variant labels), and a grid
+    that only grows (new variants or tasks beside unchanged ones: the cells trained so far stay
+    valid). Returns what the grid gained (empty when nothing did)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     pinned = root / "study.yaml"
