@@ -325,6 +325,7 @@ def main() -> None:
         "targets": targets,
         "machine": {
             "cpus": os.cpu_count(),
+            "cpu": host_devices.cpu_model(),
             "platform": platform.platform(),
             "load_average_1min_before": load,
             "matmul_gflops": base["matmul_gflops"],
@@ -341,4 +342,6 @@ if __name__ == "__main__":
     from mjx_collo import xla_log_filter
 
     xla_log_filter.install()  # the workers inherit the filtered stderr
+    from mjx_collo import host_devices
+
     main()

@@ -39,6 +39,32 @@ def host_cores() -> int:
         return os.cpu_count() or 1
 
 
+# Instruction sets that change XLA's CPU matmul speed severalfold; the first the CPU has is named.
+CPU_ISA = ("amx_tile", "avx512_bf16", "avx512f", "avx2")
+
+
+def cpu_model() -> str:
+    """The host CPU in words, e.g. ``AMD EPYC, avx512_bf16, 2 cores``: training speed differs
+    ~2x between the VMs this project runs on, so every cost record names the CPU it was measured
+    on (``host.json``, benchmark JSONs). Linux reads ``/proc/cpuinfo``; elsewhere ``platform``."""
+    import platform
+
+    name, flags = platform.processor() or platform.machine(), set()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name":
+                    name = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+                    break
+    except OSError:
+        pass
+    isa = next((i for i in CPU_ISA if i in flags), None)
+    return ", ".join([name, *([isa] if isa else []), f"{host_cores()} cores"])
+
+
 # JAX's accelerator plugins (``pip install 'jax[cuda12]'`` etc.) and what shows a device is present.
 GPU_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_rocm60_plugin", "jax_rocm7_plugin")
 GPU_DEVICE_FILES = ("/dev/nvidiactl", "/dev/kfd")

@@ -68,8 +68,17 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
     )
     names = [_label(variant, lab) for lab in labels]
     host = cell_dir / "host.json"
+    # where it ran: the platform, and on a CPU the model (speeds differ ~2x between VMs); a
+    # record from before the model was kept says only "cpu"
     platforms = (
-        sorted({h.get("platform", "?") for h in json.loads(host.read_text())})
+        sorted(
+            {
+                f"{h.get('platform', '?')}: {h['cpu']}"
+                if h.get("platform") == "cpu" and h.get("cpu")
+                else h.get("platform", "?")
+                for h in json.loads(host.read_text())
+            }
+        )
         if host.exists()
         else []
     )
@@ -296,7 +305,7 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
                 cost_rows.append(
                     f"| {cell.task} | {s.label} | {s.runs} | {_k(s.env_steps)} | "
                     f"{s.wall_s / 60:.0f} | {s.sps_per_run:.1f} | {s.sps_per_run * s.runs:.1f} | "
-                    f"{', '.join(s.platforms) or '?'} |"
+                    f"{'; '.join(s.platforms) or '?'} |"
                 )
     partial = bool(missing)
     lines = [f"# Study: {name}" + (" (partial)" if partial else ""), ""]

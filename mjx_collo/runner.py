@@ -25,8 +25,8 @@ import numpy as np
 from mjx_collo import checkpoint as ckpt_lib
 from mjx_collo import config as config_lib
 from mjx_collo import flops as flops_lib
+from mjx_collo import host_devices, parallel
 from mjx_collo import metrics as metrics_lib
-from mjx_collo import parallel
 from mjx_collo import replay as replay_lib
 from mjx_collo import trainer as trainer_lib
 from mjx_collo.config import Config
@@ -106,6 +106,7 @@ def record_host(run_dir: Path, env_steps: int) -> None:
             "host": socket.gethostname(),
             "platform": device.platform,
             "device_kind": device.device_kind,
+            "cpu": host_devices.cpu_model(),
             "devices": jax.device_count(),
             "processes": jax.process_count(),
             "jax": jax.__version__,

@@ -215,9 +215,16 @@ def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
             )
             rows.append({"step": step, "seed": seed, "kind": "eval", "eval/return": r})
     (cell / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + '\n{"step": 9')
-    (cell / "host.json").write_text(json.dumps([{"platform": "cpu"}]))
+    # two launches: one recorded before host.json named the CPU, one after (speeds differ ~2x
+    # between VMs, so the cost row says where each part ran)
+    cpu = "AMD EPYC, avx512f, 2 cores"
+    (cell / "host.json").write_text(
+        json.dumps([{"platform": "cpu"}, {"platform": "cpu", "cpu": cpu}])
+    )
     out = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md")
     md = out.read_text()
+    cost = next(x for x in md.split("## Cost")[1].splitlines() if x.startswith("| reacher_easy |"))
+    assert cost.endswith(f"| cpu; cpu: {cpu} |")
     assert md.startswith("# Study: smoke (partial)")
     assert "- reacher_easy/dreamer: 0 of 800 env steps" in md
     line = next(x for x in md.splitlines() if x.startswith("| collodreamer (n=2) |"))
