@@ -38,6 +38,9 @@ CASES = {
     "lean, batch 32 x length 25": LEAN + ["replay.batch=32", "replay.length=25"],
     "lean, 32 starts": LEAN[:1] + ["actor.starts=32"] + LEAN[2:],
     "lean, actor horizon 10": LEAN + ["actor.horizon=10"],
+    # half the replayed steps (and starts) per update: twice the updates at lean_u100's data rate
+    "lean, batch 8, 32 starts": LEAN[:1] + ["actor.starts=32"] + LEAN[2:] + ["replay.batch=8"],
+    "lean, batch 8": LEAN + ["replay.batch=8"],
 }
 REPS = 20
 
