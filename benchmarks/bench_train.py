@@ -195,6 +195,8 @@ def main() -> None:
         print(json.dumps(worker(json.loads(args.worker))))
         return
 
+    from mjx_collo import host_devices  # imports nothing from JAX
+
     # Read before the first worker: afterwards the average counts the benchmark's own threads.
     load = os.getloadavg()[0]
     methods = args.methods.split(",")
@@ -342,6 +344,4 @@ if __name__ == "__main__":
     from mjx_collo import xla_log_filter
 
     xla_log_filter.install()  # the workers inherit the filtered stderr
-    from mjx_collo import host_devices
-
     main()
