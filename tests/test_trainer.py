@@ -57,7 +57,9 @@ def uninterrupted_and_resumed(tmp_root: str):
     return cfg, (res_a, state_a), (res_b, state_b)
 
 
-@pytest.fixture(scope="module")
+# Session scope: a module-scoped fixture is torn down when an xdist worker moves on to another
+# module, and trained again when the worker returns to this one.
+@pytest.fixture(scope="session")
 def runs(tmp_path_factory):
     return uninterrupted_and_resumed(str(tmp_path_factory.mktemp("runs")))
 
@@ -122,27 +124,6 @@ def test_metrics_carry_wall_time_that_a_resumed_run_continues(runs):
     assert b_last >= a_at_first + res_b.chunk_s[0]
 
 
-def test_a_resume_that_trains_longer_records_the_new_length(tmp_path):
-    """`make train STEPS=...` again on a finished run trains on; config.yaml then says how long the
-    run is now, not how long it was first asked to be."""
-    import yaml
-
-    cfg = debug_cfg()
-    chunk = cfg.run.chunk_env_steps
-    quiet = dict(num_seeds=2, progress=False, log=lambda *_: None)
-    first = runner.Run(cfg, make_env(cfg), tmp_path / "r", **quiet)
-    first.run(chunk)
-    first.close()
-    longer = debug_cfg(overrides=[f"run.steps={2 * chunk}"])
-    again = runner.Run(longer, make_env(longer), tmp_path / "r", **quiet)
-    again.run()
-    again.close()
-    rows = (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()
-    assert max(json.loads(r)["step"] for r in rows) == 2 * chunk
-    saved = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
-    assert saved["run"]["steps"] == 2 * chunk
-
-
 def test_the_replay_holds_exactly_the_rows_the_run_writes(runs):
     """Sized to the run (a 100k pixel run: 0.6 GiB per seed, not the 2.9 GiB of a 500k
     capacity), and nothing written is ever overwritten: full at the end, the first row intact."""
@@ -164,6 +145,8 @@ def test_an_extended_or_old_checkpoint_resumes_bit_for_bit(
     code before replays were sized to the run (capacity-sized, no row count in the checkpoint);
     resumed for A's whole length, the buffer is moved to A's size and the result is A's, bit for
     bit."""
+    import yaml
+
     from mjx_collo import rollout
 
     cfg, (res_a, state_a), _ = runs
@@ -190,6 +173,10 @@ def test_an_extended_or_old_checkpoint_resumes_bit_for_bit(
     state = jax.device_get(again.state)
     again.close()
     assert len(res.chunk_s) == 1
+    # `make train STEPS=...` again on a shorter finished run trains on; config.yaml then says how
+    # long the run is now, not how long it was first asked to be.
+    saved = yaml.safe_load((tmp_path / "r" / "config.yaml").read_text())
+    assert saved["run"]["steps"] == cfg.run.steps == 2 * chunk
     leaves_a, tree_a = jax.tree.flatten(state_a)
     leaves, tree = jax.tree.flatten(state)
     assert tree == tree_a
@@ -204,29 +191,6 @@ def test_seeds_differ_in_init_and_data(runs):
     assert any(not np.allclose(np.asarray(x)[0], np.asarray(x)[1]) for x in w)
     obs = np.asarray(state.replay.data["obs"])
     assert not np.allclose(obs[0], obs[1])
-
-
-def test_chunk_traces_once_across_calls():
-    """The jitted chunk called for two consecutive chunks is traced, hence compiled, once: the
-    state it returns has exactly the shapes, dtypes and structure it took (a weak-typed or
-    re-shaped leaf would retrace and recompile every chunk), and the schedule position is an
-    array, not a Python int baked into the program."""
-    import jax.numpy as jnp
-
-    cfg = debug_cfg()
-    tr = trainer.make_train(cfg, make_env(cfg))
-    traces = []
-
-    def chunk(s, it):
-        traces.append(1)
-        return tr.chunk(s, it)
-
-    init, chunk_fn, _ = parallel.batched(tr._replace(chunk=chunk))
-    s = init(parallel.seed_keys(cfg, 2), {})
-    for c in range(2):
-        s, m = chunk_fn(s, jnp.asarray(c * tr.iterations_per_chunk, jnp.int32))
-    assert len(traces) == 1
-    assert np.all(np.asarray(s.updates) > 0)  # the second chunk trained
 
 
 ROOT = Path(__file__).resolve().parent.parent
