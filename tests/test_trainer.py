@@ -57,8 +57,8 @@ def uninterrupted_and_resumed(tmp_root: str):
     return cfg, (res_a, state_a), (res_b, state_b)
 
 
-# Session scope: a module-scoped fixture is torn down when an xdist worker moves on to another
-# module, and trained again when the worker returns to this one.
+# Session scope: each xdist worker that runs these tests trains runs A and B once, even when it
+# leaves this module for another and comes back.
 @pytest.fixture(scope="session")
 def runs(tmp_path_factory):
     return uninterrupted_and_resumed(str(tmp_path_factory.mktemp("runs")))
