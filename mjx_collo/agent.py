@@ -18,6 +18,7 @@ from mjx_collo import planner as planner_lib
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm_lib
 from mjx_collo.config import Config
+from mjx_collo.noise import colored_normal
 from mjx_collo.planners.protocol import LatentModel
 
 
@@ -32,6 +33,20 @@ class AgentCarry:
     post: wm_lib.RSSMState
     prev_action: jax.Array
     mpc: Any
+
+
+@struct.dataclass
+class ColoredCarry(AgentCarry):
+    """The carry with colored exploration (``explore.color`` > 0): ``noise`` [E, T, A] is this
+    episode's unit-variance noise per env, colored over its T agent steps. A subclass, not a field
+    that is None for white noise, so the checkpoints of white-noise runs keep their structure."""
+
+    noise: jax.Array
+
+
+def carry_noise(carry: AgentCarry) -> jax.Array | None:
+    """This episode's colored exploration noise [E, T, A]; None for white noise."""
+    return carry.noise if isinstance(carry, ColoredCarry) else None
 
 
 class Agent(NamedTuple):
@@ -90,6 +105,15 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
     return Agent(cfg, action_dim, model, planner_lib.make_planner(cfg, model, action_dim))
 
 
+def episode_noise(cfg: Config, num_envs: int, action_dim: int, key: jax.Array) -> jax.Array:
+    """One episode's exploration noise per env, ``[E, T, A]``: unit variance per step, power
+    spectrum ~ 1/f^``explore.color`` over the episode's T agent steps, independent across envs
+    and action dimensions (pink noise, Eberhard et al. 2023: long pushes a white sequence of the
+    same scale almost never makes)."""
+    steps = cfg.env.episode_env_steps // cfg.env.action_repeat
+    return colored_normal(key, (num_envs, steps, action_dim), cfg.explore.color)
+
+
 def init_carry(agent: Agent, params: tuple[Any, Any], num_envs: int, key: jax.Array) -> AgentCarry:
     cfg = agent.cfg
     post = wm_lib.initial_state(cfg.wm, (num_envs,))
@@ -98,14 +122,32 @@ def init_carry(agent: Agent, params: tuple[Any, Any], num_envs: int, key: jax.Ar
         one = jax.tree.map(lambda x: x[0], post)
         mpc0 = planner_lib.mpc_init(agent.planner, params, one, key)
         mpc = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_envs,) + x.shape), mpc0)
-    return AgentCarry(post=post, prev_action=jnp.zeros((num_envs, agent.action_dim)), mpc=mpc)
+    prev = jnp.zeros((num_envs, agent.action_dim))
+    if cfg.explore.color > 0:
+        noise = episode_noise(cfg, num_envs, agent.action_dim, jax.random.fold_in(key, 1))
+        return ColoredCarry(post=post, prev_action=prev, mpc=mpc, noise=noise)
+    return AgentCarry(post=post, prev_action=prev, mpc=mpc)
 
 
-def reset_carry(agent: Agent, carry: AgentCarry) -> AgentCarry:
-    """Episode boundary: forget the posterior, the last action and the action caches."""
+def reset_carry(agent: Agent, carry: AgentCarry, key: jax.Array | None = None) -> AgentCarry:
+    """Episode boundary: forget the posterior, the last action and the action caches; draw the
+    next episode's colored exploration noise from ``key`` (needed only for a
+    :class:`ColoredCarry`, i.e. ``explore.color`` > 0)."""
     zero = jax.tree.map(jnp.zeros_like, carry.post)
     mpc = None if carry.mpc is None else jax.vmap(planner_lib.mpc_reset)(carry.mpc)
-    return carry.replace(post=zero, prev_action=jnp.zeros_like(carry.prev_action), mpc=mpc)
+    carry = carry.replace(post=zero, prev_action=jnp.zeros_like(carry.prev_action), mpc=mpc)
+    if isinstance(carry, ColoredCarry):
+        e, _, a = carry.noise.shape
+        carry = carry.replace(noise=episode_noise(agent.cfg, e, a, key))
+    return carry
+
+
+def explore_eps(carry: AgentCarry, key: jax.Array, t: jax.Array | None) -> jax.Array:
+    """Unit-variance exploration noise ``[E, A]`` for agent step ``t`` of the episode: this
+    episode's colored sequence at ``t`` if the carry keeps one, else white from ``key``."""
+    if isinstance(carry, ColoredCarry):
+        return jax.lax.dynamic_index_in_dim(carry.noise, t, axis=1, keepdims=False)
+    return jax.random.normal(key, carry.prev_action.shape)
 
 
 def observe(
@@ -159,11 +201,20 @@ def replan_inner(
 
 
 def act(
-    agent: Agent, params: Any, carry: AgentCarry, key: jax.Array, training: bool
+    agent: Agent,
+    params: Any,
+    carry: AgentCarry,
+    key: jax.Array,
+    training: bool,
+    t: jax.Array | None = None,
 ) -> tuple[jax.Array, AgentCarry]:
-    """Actions ``[E, A]`` in [-1, 1] (noise in training only); records them as ``prev_action``.
+    """Actions ``[E, A]`` in [-1, 1] (the planner's with exploration noise in training only);
+    records them as ``prev_action``. ``t``: the agent step within the episode, which indexes
+    colored exploration noise (needed in training when ``explore.color`` > 0).
 
     ``params``: the actor variables for the Dreamer actor, else unused (actions come from caches).
+    The Dreamer actor samples its own distribution here; its added exploration noise is the
+    caller's (:func:`explore_eps`).
     """
     cfg = agent.cfg
     keys = jax.random.split(key, carry.prev_action.shape[0])
@@ -172,5 +223,13 @@ def act(
         a = jax.vmap(lambda f, k: actor_lib.act(cfg.actor, params, f, k, training))(feat, keys)
         a = jnp.clip(a, -1.0, 1.0)
         return a, carry.replace(prev_action=a)
-    a, mpc = jax.vmap(lambda m, k: planner_lib.next_action(cfg, m, k, training))(carry.mpc, keys)
+    if training and isinstance(carry, ColoredCarry):
+        eps = explore_eps(carry, key, t)
+        a, mpc = jax.vmap(lambda m, k, e: planner_lib.next_action(cfg, m, k, training, e))(
+            carry.mpc, keys, eps
+        )
+    else:
+        a, mpc = jax.vmap(lambda m, k: planner_lib.next_action(cfg, m, k, training))(
+            carry.mpc, keys
+        )
     return a, carry.replace(mpc=mpc, prev_action=a)

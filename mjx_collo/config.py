@@ -208,7 +208,8 @@ class ActorConfig(Section):
 
 
 class ExploreConfig(Section):
-    noise: float
+    noise: Annotated[float, Field(ge=0.0)]
+    color: Annotated[float, Field(ge=0.0)]
 
 
 class JLatentConfig(Section):
@@ -344,6 +345,7 @@ ADDED_KEYS: dict[str, Any] = {
     "env.obs": "state",
     "planner.init_cem.color": 0.0,
     "planner.shooting.color": 0.0,
+    "explore.color": 0.0,
 }
 
 
@@ -465,12 +467,19 @@ def uses_prior(cfg: Config) -> bool:
     return cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
 
 
+# Float keys a one-compile sweep cannot vary: they decide the program's shapes or state.
+# explore.color > 0 keeps each env's noise sequence for the episode in the acting state.
+STATIC_FLOATS = {"explore.color"}
+
+
 def float_keys(cfg: Config) -> list[str]:
     """Dotted paths of every float leaf (the keys a sweep may vary within one compile), less the
     policy prior's objective weights when the run has no prior (they would change nothing)."""
     unused = set() if uses_prior(cfg) else {"actor.pg", "actor.bc"}
     return sorted(
-        k for k, v in flatten(to_dict(cfg)).items() if isinstance(v, float) and k not in unused
+        k
+        for k, v in flatten(to_dict(cfg)).items()
+        if isinstance(v, float) and k not in unused | STATIC_FLOATS
     )
 
 
@@ -487,6 +496,11 @@ def parse_sweep(text: str, cfg: Config) -> dict[str, list[float]]:
             raise ConfigError(f"bad sweep {item!r}: expected key=v1,v2,...")
         key, vals = item.split("=", 1)
         for part in key.split("+"):
+            if part in STATIC_FLOATS:
+                raise ConfigError(
+                    f"cannot sweep '{part}' in one compile: it decides what the acting state "
+                    "holds; run one value per run (or one study variant each)"
+                )
             if part not in valid:
                 raise ConfigError(
                     f"cannot sweep '{part}': only float hyperparameters can be swept in one "

@@ -287,15 +287,19 @@ def replan_value(
 
 
 def next_action(
-    cfg: Config, state: MPCState, key: jax.Array, training: bool
+    cfg: Config, state: MPCState, key: jax.Array, training: bool, eps: jax.Array | None = None
 ) -> tuple[jax.Array, MPCState]:
-    """Pop the next cached action; add N(0, explore.noise^2) in training; clip to [-1, 1].
+    """Pop the next cached action; add ``explore.noise`` x unit noise in training; clip to [-1, 1].
 
+    The unit noise is ``eps`` [A] where given (colored over the episode, see
+    :func:`mjx_collo.agent.explore_eps`), else white N(0, 1) from ``key``.
     Returns (action [A], state with pos + 1). Past the end of the cache the last action repeats
     (the trainer replans every ``cache_len`` steps, so this only happens if it does not).
     """
     m = state.actions.shape[0]
     a = state.actions[jnp.clip(state.pos, 0, m - 1)]
     if training:
-        a = a + cfg.explore.noise * jax.random.normal(key, a.shape, a.dtype)
+        if eps is None:
+            eps = jax.random.normal(key, a.shape, a.dtype)
+        a = a + cfg.explore.noise * eps
     return jnp.clip(a, -1.0, 1.0), state.replace(pos=state.pos + 1)

@@ -125,9 +125,9 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
                 t % agent.cache_len == 0, do_plan, no_plan, (carry, vstate)
             )
         actor_params = s.actor.params if uses_actor else None
-        a, carry = agent_lib.act(agent, actor_params, carry, k_act, training)
+        a, carry = agent_lib.act(agent, actor_params, carry, k_act, training, t)
         if uses_actor and training:
-            noise = c.explore.noise * jax.random.normal(k_act, a.shape)
+            noise = c.explore.noise * agent_lib.explore_eps(carry, k_act, t)
             a = jnp.clip(a + noise, -1.0, 1.0)
             carry = carry.replace(prev_action=a)
         return a, s.replace(agent=carry, value=vstate), lam, metrics
@@ -170,11 +170,14 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
     def end_episode(s: TrainState, key: jax.Array) -> TrainState:
         """Reset every env, store the first observations, forget the agent's episode state."""
         _, agent = bind(s.hyper)
+        k_noise = None
+        if agent_lib.carry_noise(s.agent) is not None:  # colored: the next episode's noise
+            key, k_noise = jax.random.split(key)
         env_state = jax.vmap(env.reset)(jax.random.split(key, num_envs))
         return s.replace(
             env=env_state,
             replay=replay_lib.add(s.replay, first_row(env_state.obs)),
-            agent=agent_lib.reset_carry(agent, s.agent),
+            agent=agent_lib.reset_carry(agent, s.agent, k_noise),
             ep_return=jnp.zeros_like(s.ep_return),
         )
 

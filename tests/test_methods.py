@@ -4,10 +4,10 @@ the cheapest task to compile), with the world-model, value and actor updates it 
 Two seeds on one device: the programs are then those of the smoke study's cells and of the trainer
 tests (same config, same shapes), which the persistent compile cache shares between them.
 
-The value modes that learn from the plan (``plan_inner``, ``plan_final``) and the augmented latent
-objective J_latent train here too, each with every float key of the config swept (one value each,
-the config's own): what the paper's ablations run, and proof that every key in
-``config.float_keys`` traces. Every method's chunk, called for two consecutive chunks, is traced
+The value modes that learn from the plan (``plan_inner``, ``plan_final``), the augmented latent
+objective J_latent and colored (pink) exploration noise train here too, each with every float key
+of the config swept (one value each, the config's own): what the paper's ablations run, and proof
+that every key in ``config.float_keys`` traces. Every method's chunk, called for two consecutive chunks, is traced
 and compiled once."""
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import envs
+from mjx_collo import agent as agent_lib
 from mjx_collo import config, parallel, trainer
 
 METHODS = ["collodreamer", "latco", "dreamer", "cem", "mppi", "mppi_value"]
@@ -53,11 +54,12 @@ SLOW_METHODS = {"cem", "mppi"}
     "method, overrides",
     [pytest.param(m, [], marks=[pytest.mark.slow] if m in SLOW_METHODS else []) for m in METHODS]
     + [("collodreamer", v) for v in ABLATION_VARIANTS.values()]
+    + [("collodreamer", ["explore.color=1"])]
     + [
         pytest.param("collodreamer", [f"planner.init={init}", *extra], marks=pytest.mark.slow)
         for init, extra in (("policy", ["actor.bc=1.0", "actor.starts=64"]), ("policy_cem", []))
     ],
-    ids=METHODS + list(ABLATION_VARIANTS) + ["policy_prior", "policy_prior_cem"],
+    ids=METHODS + list(ABLATION_VARIANTS) + ["pink_explore", "policy_prior", "policy_prior_cem"],
 )
 def test_one_chunk_of_every_method_trains_and_evaluates(method, overrides):
     cfg = config.load(task="reacher_easy", method=method, presets=["debug"], overrides=overrides)
@@ -99,6 +101,12 @@ def test_one_chunk_of_every_method_trains_and_evaluates(method, overrides):
     if cfg.j_latent.enabled:
         jl = np.asarray(m["wm/loss/j_latent"])
         assert np.isfinite(jl).any() and np.all(np.isfinite(jl) | np.isnan(jl)), sorted(m)
+
+    if cfg.explore.color > 0:  # one noise sequence per env and episode, redrawn at each reset
+        steps = cfg.env.episode_env_steps // cfg.env.action_repeat
+        assert agent_lib.carry_noise(s.agent).shape[-2:] == (steps, s.agent.prev_action.shape[-1])
+        assert run.chunk_env_steps > cfg.env.episode_env_steps  # the chunk crossed episode ends
+        assert _changed(agent_lib.carry_noise(s.agent), agent_lib.carry_noise(s0.agent))
 
     if overrides:
         # the ablation modes act and evaluate as collodreamer does (the value learns only in

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mjx_collo import agent as agent_lib
 from mjx_collo import config
 from mjx_collo import value as V
 from mjx_collo.planner import (
@@ -69,6 +70,46 @@ def test_exploration_noise_only_in_training_and_clipped():
     assert float(jnp.max(acts[:, 1])) == 1.0  # clipped, not wrapped
     ev, _ = next_action(cfg, state, keys[0], training=False)
     np.testing.assert_array_equal(ev, state.actions[0])
+
+
+def _lag1(x: np.ndarray) -> float:
+    """Mean lag-1 autocorrelation along axis 1 of ``x [N, T, A]``."""
+    x = x - x.mean(axis=1, keepdims=True)
+    return float(np.mean(np.sum(x[:, 1:] * x[:, :-1], 1) / np.sum(x * x, 1)))
+
+
+def test_colored_exploration_noise_holds_pushes_and_is_redrawn_each_episode():
+    """explore.color > 0: each env's training noise is one sequence per episode, correlated over
+    its steps at the same per-step scale as white noise; a reset draws a new one; the planner's
+    actions carry it in training only. color 0 keeps no state (white noise per step)."""
+    white = _cfg("explore.noise=0.3")
+    pink = _cfg("explore.noise=0.3", "explore.color=1", "env.episode_env_steps=400")
+    planner = make_planner(pink, MODEL, 2)
+    mpc = mpc_init(planner, 0.0, jnp.zeros(2), jax.random.PRNGKey(0))
+    mpc = mpc.replace(actions=jnp.zeros((4, 2)), has_plan=jnp.array(True), pos=jnp.int32(0))
+    mpc = jax.tree.map(lambda x: jnp.broadcast_to(x, (64,) + jnp.shape(x)), mpc)
+    carry0 = agent_lib.AgentCarry(post=jnp.zeros((64, 3)), prev_action=jnp.zeros((64, 2)), mpc=mpc)
+
+    agent_w = agent_lib.Agent(white, 2, MODEL, planner)
+    assert agent_lib.carry_noise(agent_lib.reset_carry(agent_w, carry0)) is None  # white: no state
+
+    agent = agent_lib.Agent(pink, 2, MODEL, planner)
+    noise = agent_lib.episode_noise(pink, 64, 2, jax.random.PRNGKey(1))
+    steps = pink.env.episode_env_steps // pink.env.action_repeat
+    assert noise.shape == (64, steps, 2)
+    assert float(jnp.std(noise)) == pytest.approx(1.0, rel=0.1)
+    assert _lag1(np.asarray(noise)) > 0.5  # pink: neighbouring steps push the same way
+    white_seq = jax.random.normal(jax.random.PRNGKey(1), noise.shape)
+    assert abs(_lag1(np.asarray(white_seq))) < 0.05
+
+    carry = agent_lib.ColoredCarry(carry0.post, carry0.prev_action, carry0.mpc, noise)
+    a, _ = agent_lib.act(agent, None, carry, jax.random.PRNGKey(2), True, jnp.int32(7))
+    np.testing.assert_allclose(a, jnp.clip(0.3 * noise[:, 7], -1, 1), atol=1e-6)
+    a_eval, _ = agent_lib.act(agent, None, carry, jax.random.PRNGKey(2), False, jnp.int32(7))
+    np.testing.assert_array_equal(a_eval, 0.0)  # evaluation: the plan alone
+
+    fresh = agent_lib.carry_noise(agent_lib.reset_carry(agent, carry, jax.random.PRNGKey(3)))
+    assert fresh.shape == noise.shape and not np.allclose(fresh, noise)
 
 
 def test_nonfinite_plan_falls_back_to_cache_tail_then_zeros():

@@ -54,6 +54,10 @@ def test_a_sweep_a_path_cannot_take_is_refused_with_one_line():
     )
     with pytest.raises(config.ConfigError, match="planner.solver=adam"):
         config.parse_sweep("planner.value_lambda=0.8,1.0", cfg)
+    # a float that decides what the acting state holds (the episode's colored noise, or none)
+    assert "explore.color" not in config.float_keys(cfg)
+    with pytest.raises(config.ConfigError, match="'explore.color'.*one value per run"):
+        config.parse_sweep("explore.color=0,1", cfg)
 
 
 def test_plan_inner_that_would_never_step_the_value_is_refused():
