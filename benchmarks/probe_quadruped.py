@@ -12,8 +12,8 @@ a quarter of its walking return. The probe separates "cannot walk" from "cannot 
    and how often the physics goes unstable, per MjModel option set (native MuJoCo,
    envs.quadruped.get_up_trials). dm_control's options: never; faithful options must agree;
    1b. exploration: with dm_control's options, how far random actions of each kind (the
-   training noise around a still plan, white / pink / red noise at full scale, uniform actions
-   held for k steps) roll the body from a down start: how many reach their side (upright > 0) or
+   training noise around a still plan, white / pink / red noise at full scale and at 0.3 and 0.6
+   per step -- explore.color's noise --, uniform actions held for k steps) roll the body from a down start: how many reach their side (upright > 0) or
    their feet, and the mean upright factor of the reward over the episode;
 2. training data: in each run's replay (newest checkpoint), the episodes that started down
    (torso upright < 0.5 at the first step), those that reached a side (upright > 0 once landed) and
@@ -83,14 +83,18 @@ def exploration_reach(starts: int, seed: int = 0) -> dict:
     def actions(rng, kind: str) -> np.ndarray:
         if kind == "gaussian 0.3 (training noise around a still plan)":
             return np.clip(0.3 * rng.normal(size=(500, m.nu)), -1, 1)
-        if kind.startswith("colored"):
-            beta = float(kind.split()[-1])
-            return np.clip(quadruped.colored_noise(rng, beta, 500, m.nu), -1, 1)
+        if kind.startswith("colored"):  # "colored beta 2" (full scale) or "colored beta 2 x0.3"
+            words = kind.split()
+            scale = float(words[3][1:]) if len(words) > 3 else 1.0
+            beta = float(words[2])
+            return np.clip(scale * quadruped.colored_noise(rng, beta, 500, m.nu), -1, 1)
         hold = int(kind.split()[-1])  # "uniform held k": piecewise constant uniform actions
         return np.repeat(rng.uniform(-1, 1, (500 // hold + 1, m.nu)), hold, 0)[:500]
 
     kinds = ["gaussian 0.3 (training noise around a still plan)"]
     kinds += [f"colored beta {b:g}" for b in (0.0, 1.0, 2.0)]
+    # explore.color's noise at the training scale (explore.noise 0.3 per step) and twice it
+    kinds += [f"colored beta {b:g} x{x:g}" for x in (0.3, 0.6) for b in (0.0, 1.0, 2.0)]
     kinds += [f"uniform held {k}" for k in (5, 10, 25)]
     out = {}
     for kind in kinds:
@@ -281,17 +285,29 @@ def main(argv=None) -> int:
     p.add_argument("runs", nargs="*", help="quadruped run directories (none: parts 1 and 3 only)")
     p.add_argument("--starts", type=int, default=60, help="down starts per physics check")
     p.add_argument("--out", default=str(ROOT / "bench_results" / "quadruped_probe.json"))
+    p.add_argument(
+        "--only",
+        choices=["exploration"],
+        help="run part 1b alone and replace only its entry in --out (seconds, not minutes)",
+    )
     args = p.parse_args(argv)
 
     from mjx_collo import session
 
     session.setup_jax()
+    out = Path(args.out)
+    if args.only == "exploration":
+        result = json.loads(out.read_text()) if out.exists() else {}
+        result["exploration"] = exploration_reach(args.starts)
+        out.write_text(json.dumps(result, indent=1))
+        print(f"wrote {args.out}")
+        return 0
     result = {"physics": physics_check(args.starts), "runs": []}
     result["exploration"] = exploration_reach(args.starts)
     result["perfect_model_cem"] = {f"hold {h}": perfect_model_cem(h) for h in (1, 10)}
     for run in args.runs:
         result["runs"].append(probe_run(Path(run)))
-    Path(args.out).write_text(json.dumps(result, indent=1))
+    out.write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out}")
     return 0
 
