@@ -287,8 +287,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(ROOT / "bench_results" / "quadruped_probe.json"))
     p.add_argument(
         "--only",
-        choices=["exploration"],
-        help="run part 1b alone and replace only its entry in --out (seconds, not minutes)",
+        choices=["exploration", "runs"],
+        help="run part 1b alone, or parts 2 and 4 on the given runs alone, and replace only that "
+        "entry in --out (seconds, not minutes)",
     )
     args = p.parse_args(argv)
 
@@ -296,9 +297,12 @@ def main(argv=None) -> int:
 
     session.setup_jax()
     out = Path(args.out)
-    if args.only == "exploration":
+    if args.only:
         result = json.loads(out.read_text()) if out.exists() else {}
-        result["exploration"] = exploration_reach(args.starts)
+        if args.only == "exploration":
+            result["exploration"] = exploration_reach(args.starts)
+        else:
+            result["runs"] = [probe_run(Path(run)) for run in args.runs]
         out.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.out}")
         return 0
