@@ -223,6 +223,8 @@ def act(
         a = jax.vmap(lambda f, k: actor_lib.act(cfg.actor, params, f, k, training))(feat, keys)
         a = jnp.clip(a, -1.0, 1.0)
         return a, carry.replace(prev_action=a)
+    # white noise stays drawn per env inside next_action, from the same keys as before colored
+    # noise existed: runs and checkpoints of white-noise configs are bit-for-bit what they were
     if training and isinstance(carry, ColoredCarry):
         eps = explore_eps(carry, key, t)
         a, mpc = jax.vmap(lambda m, k, e: planner_lib.next_action(cfg, m, k, training, e))(
