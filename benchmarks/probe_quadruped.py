@@ -292,6 +292,8 @@ def main(argv=None) -> int:
         "entry in --out (seconds, not minutes)",
     )
     args = p.parse_args(argv)
+    if args.only == "runs" and not args.runs:
+        p.error("--only runs needs quadruped run directories to probe")
 
     from mjx_collo import session
 
