@@ -126,7 +126,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=6.0, help="timing window per configuration")
     ap.add_argument("--out", default="bench_results/model.json")
     ap.add_argument("--only", choices=["gaussian", "categorical"], default=None)
-    ap.add_argument("--batches", default="16x50,50x50")
+    ap.add_argument("--batches", default="8x50,16x50,50x50")  # 8 x 50: the default since 2026-12-07
     args = ap.parse_args()
 
     peak = MatmulPeak()

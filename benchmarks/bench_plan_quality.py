@@ -46,8 +46,17 @@ OUT = ROOT / "bench_results" / "plan_quality.json"
 TASK = "cheetah_run"
 
 # name -> (method, overrides). The reward-only objective everywhere (the fixture has no trained
-# value), so ColloDreamer's collocation runs with value.bootstrap=false.
-NO_VALUE = ["value.bootstrap=false"]
+# value), so ColloDreamer's collocation runs with value.bootstrap=false, and the fixture's MSE
+# reward head. The fixture has no policy prior either: the rows plan with the planner alone, with
+# the settings of the default of their time (CEM 30 x 6 start, 50 Adam steps), which the default
+# ColloDreamer left on 2026-12-07 for a prior's proposal + CEM 30 x 3 + 10 steps.
+NO_VALUE = [
+    "value.bootstrap=false",
+    "wm.reward_head=mse",
+    "planner.init=cem",
+    "planner.iters=50",
+    "planner.init_cem.iters=6",
+]
 # Rows other than the default start from small random actions (planner.init=rollout), as they
 # were measured before the default became the CEM start (planner.init=cem, 50 iterations).
 COLD = NO_VALUE + ["planner.init=rollout"]
@@ -62,7 +71,12 @@ def _cem_overrides(samples: int, iters: int) -> list[str]:
 
 CEM_100X4 = _cem_overrides(100, 4)  # the previous default's start
 CONFIGS: dict[str, tuple[str, list[str]]] = {
-    "collocation default": ("collodreamer", NO_VALUE),
+    "collocation default": ("collodreamer", NO_VALUE),  # the planner alone, CEM 30 x 6 + K=50
+    # today's default's search without its prior's proposal: CEM 30 x 3 + K=10
+    "lean planner alone (cem 30x3, K=10)": (
+        "collodreamer",
+        NO_VALUE + ["planner.init_cem.iters=3", "planner.iters=10"],
+    ),
     "adam K=200 lr=0.015 cold (old default)": ("collodreamer", COLD + ["planner.iters=200"]),
     "adam K=30 lr=0.05 warm (older default)": (
         "collodreamer",

@@ -158,12 +158,22 @@ def _iters(cfg: Config) -> int:
 
 # (label, method, overrides, outer iterations actually run per batch size; None = the full K).
 # Runs with fewer iterations are extrapolated linearly in K (marked ``extrap``).
+# The collocation rows plan without a policy prior (this bench builds no actor): the first two with
+# the CEM 30 x 6 start and 50 steps of the default before 2026-12-07 (and of --preset paper), the
+# third with today's default's search behind its prior's proposal (CEM 30 x 3, 10 steps).
+CEM_START = ["planner.init=cem", "planner.iters=50", "planner.init_cem.iters=6"]
 CALLS: list[tuple[str, str, list[str], dict[int, int | None]]] = [
-    ("collodreamer/adam (default)", "collodreamer", [], {1: None, 16: None}),
+    ("collodreamer/adam (CEM 30x6 start, K=50)", "collodreamer", CEM_START, {1: None, 16: None}),
     (
         "collodreamer/adam, end bootstrap (value_lambda=1)",
         "collodreamer",
-        ["planner.value_lambda=1"],
+        CEM_START + ["planner.value_lambda=1"],
+        {1: None, 16: None},
+    ),
+    (
+        "collodreamer/adam (default's search: CEM 30x3, K=10, no prior)",
+        "collodreamer",
+        ["planner.init=cem"],
         {1: None, 16: None},
     ),
     (

@@ -64,7 +64,8 @@ def main(argv=None) -> int:
     def episodes(s, key):
         k_env, k_carry, key = jax.random.split(key, 3)
         es = jax.vmap(env.reset)(jax.random.split(k_env, n))
-        params = wm_lib.plan_params(s.wm, s.value.target if s.value is not None else None)
+        prior = s.actor.params if agent.uses_prior else None  # the default plans from its prior
+        params = wm_lib.plan_params(s.wm, s.value.target if s.value is not None else None, prior)
         carry = agent_lib.init_carry(agent, params, n, k_carry)
 
         def step_fn(c, t):

@@ -145,7 +145,7 @@ def main(argv=None) -> int:
 
     agent = agent_lib.make_agent(cfg, int(env.action_size))
     pl, model = agent.planner, agent.model
-    pp = wm.plan_params(s.wm, s.value.target)
+    pp = wm.plan_params(s.wm, s.value.target, s.actor.params if agent.uses_prior else None)
     horizon = cfg.planner.horizon
 
     @jax.jit

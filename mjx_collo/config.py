@@ -239,9 +239,39 @@ class Config(Section):
 # --------------------------------------------------------------------------------------------
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML loader that refuses a key given twice in one mapping: PyYAML would keep the last
+    silently, so a second ``planner:`` block in an overlay would drop the first one's settings."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # `<<: *anchor` merges a mapping; keys given beside it override it
+            key = self.construct_object(key_node, deep=deep)
+            line = key_node.start_mark.line + 1
+            try:
+                hash(key)
+            except TypeError:
+                raise ConfigError(
+                    f"{key_node.start_mark.name}: line {line}: a mapping key must be a plain value"
+                ) from None
+            if key in seen:
+                raise ConfigError(
+                    f"{key_node.start_mark.name}: key '{key}' appears twice in one mapping (lines "
+                    f"{seen[key]} and {line}); merge them into one"
+                )
+            seen[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """A YAML mapping from ``path``; bad YAML or a repeated key is one :class:`ConfigError` line."""
     with open(path) as f:
-        data = yaml.safe_load(f) or {}
+        try:
+            data = yaml.load(f, Loader=_UniqueKeyLoader) or {}
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML: {str(e).splitlines()[0]}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping at top level, got {type(data).__name__}")
     return data
@@ -325,7 +355,7 @@ def _overlay(kind: str, name: str, required: bool) -> dict[str, Any]:
                 f"unknown {kind} preset '{name}'; available: {', '.join(available_presets(kind))}"
             )
         return {}
-    return _read_yaml(path)
+    return read_yaml(path)
 
 
 # Keys added after FORMAT_VERSION 1 was written, with the value that reproduces how configs
@@ -381,14 +411,15 @@ def load(
     Args:
       task: canonical task name (e.g. ``cheetah_run``); its overlay ``configs/task/<task>.yaml`` is
         applied if present.
-      method: one of the ``configs/method/*.yaml`` presets.
+      method: one of the ``configs/method/*.yaml`` presets; None: defaults.yaml's ``method``
+        (collodreamer), whose overlay applies as well, so that ``load()`` is the default agent.
       presets: extra overlays from ``configs/preset/`` (e.g. ``debug``), applied in order.
       overrides: dotted ``key=value`` strings, applied last.
     """
-    tree = _read_yaml(CONFIG_DIR / "defaults.yaml")
-    if method is not None:
-        tree = deep_merge(tree, _overlay("method", method, required=True))
-        tree["method"] = method
+    tree = read_yaml(CONFIG_DIR / "defaults.yaml")
+    method = method if method is not None else tree.get("method", "collodreamer")
+    tree = deep_merge(tree, _overlay("method", method, required=True))
+    tree["method"] = method
     if task is not None:
         tree = deep_merge(tree, _overlay("task", task, required=False))
         _set_path(tree, ["env", "task"], task)
@@ -429,11 +460,55 @@ def dump_yaml(cfg: Config, path: str | Path) -> None:
     tmp.replace(path)
 
 
+PRIOR_KEYS = ("actor.pg", "actor.bc", "actor.starts")
+
+
+def _flat_uses_prior(flat: Mapping[str, Any]) -> bool:
+    return flat.get("planner.kind") != "dreamer" and flat.get("planner.init") in (
+        "policy",
+        "policy_cem",
+    )
+
+
 def inert_keys(flat: Mapping[str, Any]) -> set[str]:
     """Keys of a flattened config that cannot change its run, given its other values: the conv
-    encoder's ``wm.cnn_depth`` in a run that sees states. A default changed for pixel runs then
-    leaves state runs resumable and combinable with runs written before the change."""
-    return {"wm.cnn_depth"} if flat.get("env.obs", "state") == "state" else set()
+    encoder's ``wm.cnn_depth`` in a run that sees states, and how the policy prior trains
+    (:data:`PRIOR_KEYS`) in a run without one. A default changed for pixel runs, or for the
+    prior, then leaves the other runs resumable and combinable with runs written before it."""
+    inert = {"wm.cnn_depth"} if flat.get("env.obs", "state") == "state" else set()
+    if not _flat_uses_prior(flat):
+        inert |= set(PRIOR_KEYS)
+    return inert
+
+
+def check_prior(cfg: Config) -> None:
+    """A policy prior's requirements, checked on the config alone (before anything compiles):
+    it starts a collocation plan and learns from the value's returns. Raises ConfigError."""
+    if uses_prior(cfg):
+        if cfg.planner.kind not in ("latco", "collodreamer"):
+            raise ConfigError(
+                f"planner.init={cfg.planner.init} starts a collocation plan from the policy "
+                f"prior; planner.kind={cfg.planner.kind} has no collocation plan (use latco or "
+                "collodreamer, or planner.init=cem)"
+            )
+        if not cfg.value.enabled:
+            raise ConfigError(
+                f"planner.init={cfg.planner.init} trains its policy prior on the value's returns: "
+                "it needs value.enabled=true (or plan without the prior: planner.init=cem)"
+            )
+        if cfg.actor.starts < 0:
+            raise ConfigError(
+                f"actor.starts={cfg.actor.starts}: the prior's imagination starts per update must "
+                "be >= 0 (0: every replay posterior)"
+            )
+    elif cfg.actor.pg != 1.0 or cfg.actor.bc != 0.0:
+        # actor.starts is not checked: the default ColloDreamer sets it (32), and
+        # `planner.init=cem` on top of that default must run as the planner alone.
+        raise ConfigError(
+            "actor.pg and actor.bc set how the policy prior trains, and this run has "
+            f"no prior (planner.init={cfg.planner.init}): set planner.init=policy or policy_cem, "
+            "or leave actor.pg=1.0 actor.bc=0.0"
+        )
 
 
 def diff(a: Config, b: Config) -> list[str]:

@@ -131,7 +131,10 @@ def load(name_or_path: str) -> tuple[str, StudyConfig]:
     if not path.exists():
         known = ", ".join(sorted(p.stem for p in STUDY_DIR.glob("*.yaml")))
         raise StudyError(f"no study config {path}; studies in {STUDY_DIR}: {known}")
-    raw = yaml.safe_load(path.read_text()) or {}
+    try:
+        raw = config_lib.read_yaml(path)
+    except config_lib.ConfigError as e:
+        raise StudyError(str(e)) from None
     try:
         cfg = StudyConfig.model_validate(raw)
     except ValidationError as e:
@@ -165,9 +168,11 @@ def _check(path: Path, cfg: StudyConfig) -> None:
             envs.canonical(task)
         except envs.UnknownTaskError as e:
             raise StudyError(f"{path}: {e}") from None
+    from mjx_collo import trainer
+
     for cell in cells(cfg):
         try:
-            run_config(cell)
+            trainer.validate(run_config(cell))  # what train.py refuses before compiling
         except config_lib.ConfigError as e:
             raise StudyError(f"{path}: cell {cell.key}: {e}") from None
 

@@ -90,6 +90,7 @@ def validate(cfg: Config) -> None:
             f"solver iterations, but a planning call runs planner.iters={pc.iters}: the value "
             f"would never learn; set value.v_every <= {pc.iters}"
         )
+    config_lib.check_prior(cfg)
     if run.prefill // per_iter < cfg.replay.length:
         raise ConfigError(
             f"run.prefill={run.prefill} env steps give {run.prefill // per_iter} replay rows per "
@@ -124,29 +125,6 @@ def make_train(cfg: Config, env) -> Trainer:
             f"planner (latco or collodreamer), not planner.kind={cfg.planner.kind}; use value.mode=replay"
         )
 
-    if agent_lib.uses_prior(cfg):
-        if cfg.planner.kind not in planner_lib.COLLOCATION:
-            raise ConfigError(
-                f"planner.init={cfg.planner.init} starts a collocation plan from the policy prior; "
-                f"planner.kind={cfg.planner.kind} has no collocation plan (use latco or "
-                "collodreamer, or planner.init=cem)"
-            )
-        if not cfg.value.enabled:
-            raise ConfigError(
-                f"planner.init={cfg.planner.init} trains its policy prior on the value's returns: "
-                "it needs value.enabled=true"
-            )
-        if cfg.actor.starts < 0:
-            raise ConfigError(
-                f"actor.starts={cfg.actor.starts}: the prior's imagination starts per update must "
-                "be >= 0 (0: every replay posterior)"
-            )
-    elif cfg.actor.pg != 1.0 or cfg.actor.bc != 0.0 or cfg.actor.starts != 0:
-        raise ConfigError(
-            "actor.pg, actor.bc and actor.starts set how the policy prior trains, and this run has "
-            f"no prior (planner.init={cfg.planner.init}): set planner.init=policy or policy_cem, "
-            "or leave actor.pg=1.0 actor.bc=0.0 actor.starts=0"
-        )
     agent = agent_lib.make_agent(cfg, action_dim)
 
     def bind(hyper: dict[str, jax.Array]) -> tuple[Config, agent_lib.Agent]:

@@ -88,7 +88,8 @@ def test_a_checkpoint_written_before_a_key_existed_still_loads(tmp_path):
             "planner.refine_iters: 0 -> 7",
             f"planner.value_lambda: 1.0 -> {cfg.planner.value_lambda}",
             "run.eval_overlap: False -> True",  # where evaluations run: resumable (RESUMABLE)
-            "wm.reward_head: 'mse' -> 'twohot'",  # reacher's overlay since the key exists
+            "wm.reward_head: 'mse' -> 'twohot'",  # the default ColloDreamer's since 2026-12-07
+            f"actor.starts: 0 -> {cfg.actor.starts}",  # the default's prior, the same day
         ]
         + [
             f"planner.init_cem.{k}: {v} -> {cem_now[k]}"

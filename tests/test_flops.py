@@ -91,7 +91,7 @@ def test_convolution_flops():
 def _plan_flops(*overrides: str) -> float:
     cfg = config.load(
         method="collodreamer",
-        overrides=["value.bootstrap=false", "planner.horizon=10", *overrides],
+        overrides=["value.bootstrap=false", "planner.horizon=10", "planner.init=cem", *overrides],
     )
     planner = make_planner(cfg, LQ, 2)
 

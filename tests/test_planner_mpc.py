@@ -205,6 +205,7 @@ def test_plan_inner_value_learning_shares_updates_across_envs():
         "value.units=8",
         "value.v_every=2",
         "value.mode=plan_inner",
+        "planner.init=cem",  # the toy model has no policy prior
         method="collodreamer",
     )
     vcfg = cfg.value

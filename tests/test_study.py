@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mjx_collo import report, study
+from mjx_collo import config, report, study
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "study" / "smoke.yaml"
@@ -43,6 +43,25 @@ def test_bad_study_config_fails_with_one_line_before_training(tmp_path, changes,
     with pytest.raises(study.StudyError, match=message) as e:
         study.load(str(_study_yaml(tmp_path, **changes)))
     assert "\n" not in str(e.value)
+
+
+def test_a_key_given_twice_in_a_study_or_an_overlay_is_refused_naming_both_lines(tmp_path):
+    """YAML would keep the second silently: a second `variants:` or `planner:` block would drop
+    what the first one set."""
+    path = tmp_path / "twice.yaml"
+    path.write_text(SMOKE.read_text() + "\nseeds: 5\n")
+    with pytest.raises(study.StudyError, match=r"key 'seeds' appears twice .*lines \d+ and \d+"):
+        study.load(str(path))
+    overlay = tmp_path / "overlay.yaml"
+    overlay.write_text("planner: {iters: 3}\nwm: {deter: 8}\nplanner: {horizon: 5}\n")
+    with pytest.raises(config.ConfigError, match=r"key 'planner' appears twice .*lines 1 and 3"):
+        config.read_yaml(overlay)
+    overlay.write_text("planner: {iters: [3}\n")
+    with pytest.raises(config.ConfigError, match="not valid YAML"):
+        config.read_yaml(overlay)
+    # a merge key is no repetition: the keys beside it override the merged ones
+    overlay.write_text("a: &x {iters: 3, horizon: 5}\nb:\n  <<: *x\n  horizon: 7\n")
+    assert config.read_yaml(overlay)["b"] == {"iters": 3, "horizon": 7}
 
 
 def test_every_committed_study_config_resolves():

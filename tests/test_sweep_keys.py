@@ -19,7 +19,8 @@ PATHS = {
     "latco": ("latco", [], {}),
     "cem": ("cem", [], {}),
     "mppi_value": ("mppi_value", [], {}),
-    "policy_prior": ("collodreamer", ["planner.init=policy_cem", "actor.starts=64"], {}),
+    "collodreamer": ("collodreamer", [], {}),  # the default: plans from its policy prior
+    "cem_start": ("collodreamer", ["planner.init=cem"], {}),  # the planner alone (paper preset)
     "gauss_newton+refine": (
         "collodreamer",
         ["planner.solver=gauss_newton", "planner.refine_iters=2", "planner.value_lambda=1.0"],

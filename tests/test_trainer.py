@@ -137,7 +137,11 @@ def test_the_replay_holds_exactly_the_rows_the_run_writes(runs):
     assert np.asarray(state.replay.data["is_first"])[:, 0].all()
 
 
-@pytest.mark.parametrize("first_buffer", ["sized_to_a_shorter_run", "capacity_sized_old_format"])
+# the old, capacity-sized format in make test-all only: make test stays under its 15 minutes
+@pytest.mark.parametrize(
+    "first_buffer",
+    ["sized_to_a_shorter_run", pytest.param("capacity_sized_old_format", marks=pytest.mark.slow)],
+)
 def test_an_extended_or_old_checkpoint_resumes_bit_for_bit(
     runs, tmp_path, monkeypatch, first_buffer
 ):
@@ -256,37 +260,12 @@ def test_checkpoint_from_another_config_fails_with_one_line(runs):
     assert "different config" in err and "wm.deter: 16 -> 32" in err
 
 
-def test_make_eval_with_another_planner_budget(runs, tmp_path):
-    """`make eval` on the run directory with a planner override that changes the shape of the
-    acting caches saved in the checkpoint (mpc_steps 2 -> 4): it restores, plans with the new
-    setting, and writes a per-seed table and eval_<step>.json that records the override."""
-    cfg, (res_a, _), _ = runs
-    proc = _cli(
-        "evaluate.py",
-        ["--ckpt", str(res_a.run_dir), "--episodes", "2", "--out", str(tmp_path)]
-        + ["planner.mpc_steps=4", "planner.iters=5"],
-    )
-    out = proc.stdout
-    assert proc.returncode == 0, (out, proc.stderr)
-    result = json.loads((tmp_path / "eval_800.json").read_text())  # named by the step
-    assert result["overrides"] == ["planner.mpc_steps=4", "planner.iters=5"]
-    assert result["env_steps"] == 800 and len(result["runs"]) == 2
-    returns = np.array([r["returns"] for r in result["runs"]])
-    assert returns.shape == (2, 2) and np.all(np.isfinite(returns))
-    # the episodes acted with the override (the saved caches were shaped for mpc_steps=2)
-    assert result["planner"]["mpc_steps"] == 4 and result["planner"]["iters"] == 5
-    # dm_control rewards lie in [0, 1] per env step: a return is at most the episode's length
-    assert np.all(returns <= cfg.env.episode_env_steps)
-    assert "seed=0" in out and "seed=1" in out and "all runs" in out
-
-
 @pytest.mark.parametrize(
     "override, message",
     [
         ("wm.deter=32", "cannot override 'wm.deter'"),
         ("planner.kind=dreamer", "only dreamer checkpoints hold an actor"),
         ("planner.mpc_step=4", "unknown config key 'planner.mpc_step'"),
-        ("planner.init=policy", "holds no policy prior"),
     ],
 )
 def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(runs, override, message):
@@ -295,24 +274,34 @@ def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(runs, overri
     assert message in err, err
 
 
-def test_make_eval_acts_with_the_prior_alone_or_the_planner_alone(tmp_path):
-    """A checkpoint trained with the policy prior (planner.init=policy_cem) is evaluated three
-    ways on the same episodes, as docs/ALGORITHM.md §4.10 tells users to: as trained, with the
-    prior alone (its rollout is the plan: planner.iters=0 planner.init=policy) and with the
-    planner alone (planner.init=cem, whose config has no prior to train: the prior's training
-    keys must not refuse it). A planner that cannot start from the prior is one line naming the
-    fix."""
-    run = tmp_path / "run"
-    proc = _cli(
-        "train.py",
-        ["--env", TASK, "--preset", "debug", "--seeds", "1", "--steps", "400", "--run", str(run)]
-        + ["--no-progress", "planner.init=policy_cem", "actor.starts=8"],
-    )
-    assert proc.returncode == 0, proc.stderr
+def test_a_checkpoint_without_a_prior_cannot_be_evaluated_with_one():
+    """`make eval ... planner.init=policy` on a run that trained no prior (the paper preset, or
+    planner.init=cem) is one line naming why; the reverse (a prior run's planner alone) is taken."""
+    from mjx_collo import session
+
+    no_prior = debug_cfg(overrides=["planner.init=cem"])
+    with pytest.raises(config.ConfigError, match="planner.init=cem and holds no policy prior"):
+        session.eval_config(no_prior, ["planner.init=policy"])
+    assert session.eval_config(debug_cfg(), ["planner.init=cem"]).planner.init == "cem"
+
+
+def test_make_eval_acts_with_the_prior_alone_or_the_planner_alone(runs, tmp_path):
+    """A checkpoint of the default, which trains the policy prior (planner.init=policy_cem), is
+    evaluated three ways on the same episodes, as docs/ALGORITHM.md §4.10 tells users to: with
+    both (here with another planner budget, mpc_steps 2 -> 4, which changes the shape of the
+    acting caches saved in the checkpoint), with the prior alone (its rollout is the plan:
+    planner.iters=0 planner.init=policy) and with the planner alone (planner.init=cem, whose
+    config has no prior to train: the prior's training keys must not refuse it). Each writes a
+    per-seed table and eval_<step>.json recording its overrides. A planner that cannot start
+    from the prior is one line naming the fix."""
+    cfg, (res_a, _), _ = runs  # the default ColloDreamer trains its prior (policy_cem)
+    assert cfg.planner.init == "policy_cem" and cfg.planner.mpc_steps == 2
+    run = res_a.run_dir
     results = {}
+    budget = ["planner.mpc_steps=4"]
     for name, overrides in {
-        "both": [],
-        "prior": ["planner.iters=0", "planner.init=policy"],
+        "both": budget + ["planner.iters=5"],
+        "prior": budget + ["planner.iters=0", "planner.init=policy"],
         "planner": ["planner.init=cem"],
     }.items():
         out = tmp_path / name
@@ -320,9 +309,16 @@ def test_make_eval_acts_with_the_prior_alone_or_the_planner_alone(tmp_path):
             "evaluate.py", ["--ckpt", str(run), "--episodes", "2", "--out", str(out)] + overrides
         )
         assert proc.returncode == 0, (proc.stdout, proc.stderr)
-        results[name] = json.loads((out / "eval_400.json").read_text())
+        results[name] = json.loads((out / "eval_800.json").read_text())  # named by the step
         assert results[name]["overrides"] == overrides
-        assert np.all(np.isfinite(results[name]["runs"][0]["returns"]))
+        assert results[name]["env_steps"] == 800 and len(results[name]["runs"]) == 2
+        returns = np.array([r["returns"] for r in results[name]["runs"]])
+        assert returns.shape == (2, 2) and np.all(np.isfinite(returns))
+        # dm_control rewards lie in [0, 1] per env step: a return is at most the episode's length
+        assert np.all(returns <= cfg.env.episode_env_steps)
+        assert "seed=0" in proc.stdout and "seed=1" in proc.stdout and "all runs" in proc.stdout
+    # the episodes acted with the override (the saved caches were shaped for mpc_steps=2)
+    assert results["both"]["planner"]["mpc_steps"] == 4 and results["both"]["planner"]["iters"] == 5
     # every evaluation of a prior run also acts with the prior alone on the same episodes: in
     # training (metrics.jsonl) and in make eval, where it matches the prior-alone evaluation
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
@@ -352,30 +348,54 @@ def test_config_inconsistency_names_the_fix():
     with pytest.raises(config.ConfigError, match="needs value.enabled=true"):
         trainer.make_train(debug_cfg(overrides=["planner.init=policy", "value.enabled=false"]), env)
     with pytest.raises(config.ConfigError, match="set planner.init=policy or policy_cem"):
-        trainer.make_train(debug_cfg(overrides=["actor.bc=1.0"]), env)  # would change nothing
-    with pytest.raises(config.ConfigError, match="set planner.init=policy or policy_cem"):
-        trainer.make_train(debug_cfg(overrides=["actor.starts=64"]), env)
+        trainer.make_train(debug_cfg(overrides=["planner.init=cem", "actor.bc=1.0"]), env)  # inert
+    # the default's imagination starts are inert when a user plans without the prior
+    assert not config.uses_prior(debug_cfg(overrides=["planner.init=cem", "actor.starts=64"]))
+    trainer.make_train(debug_cfg(overrides=["planner.init=cem"]), env)  # runs as the planner alone
     with pytest.raises(config.ConfigError, match="must be >= 0"):
         trainer.make_train(debug_cfg(overrides=["planner.init=policy", "actor.starts=-1"]), env)
     with pytest.raises(config.ConfigError, match="cannot sweep 'actor.bc'"):
-        config.parse_sweep("actor.bc=0,1", debug_cfg())
-    assert "actor.bc" in config.float_keys(debug_cfg(overrides=["planner.init=policy"]))
+        config.parse_sweep("actor.bc=0,1", debug_cfg(overrides=["planner.init=cem"]))
+    assert "actor.bc" in config.float_keys(debug_cfg())  # the default trains a prior
 
 
 def test_task_overlay_sits_between_the_method_and_the_users_overrides():
     """configs/task/<task>.yaml changes only what it names, for that task, and an override wins."""
-    reacher = config.load(task="reacher_easy")
+    quadruped = config.load(task="quadruped_walk")
     cheetah = config.load(task="cheetah_run")
-    assert reacher.wm.loss_scales.reward == 10.0 and cheetah.wm.loss_scales.reward == 1.0
-    assert reacher.wm.loss_scales.obs == cheetah.wm.loss_scales.obs == 1.0
-    assert (reacher.wm.reward_head, cheetah.wm.reward_head) == ("twohot", "mse")
-    assert config.load(task="reacher_easy", method="latco").wm.loss_scales.reward == 10.0
-    mine = config.load(
-        task="reacher_easy", overrides=["wm.loss_scales.reward=3", "wm.reward_head=mse"]
-    )
-    assert mine.wm.loss_scales.reward == 3.0 and mine.wm.reward_head == "mse"
+    assert (quadruped.env.physics, cheetah.env.physics) == ("tuned", "dmc")
+    assert quadruped.env.action_repeat == cheetah.env.action_repeat
+    assert config.load(task="quadruped_walk", method="latco").env.physics == "tuned"
+    mine = config.load(task="quadruped_walk", overrides=["env.physics=dmc"])
+    assert mine.env.physics == "dmc"
     for name in config.available_presets("task"):
         config.load(task=name)  # every overlay names real keys with the right types
+
+
+def test_the_default_collodreamer_is_one_config_for_every_task():
+    """One set of defaults for every task (issue 39): the default ColloDreamer plans from its
+    policy prior on cheetah, reacher and quadruped alike; the only task overlay is quadruped's
+    physics options, and `--preset paper` keeps the paper's agent, which has no prior."""
+    tasks = ("cheetah_run", "reacher_easy", "quadruped_walk")
+    agents = {t: config.to_dict(config.load(task=t, method="collodreamer")) for t in tasks}
+    for t in tasks:
+        agents[t]["env"].pop("task"), agents[t]["env"].pop("physics")
+    assert agents["cheetah_run"] == agents["reacher_easy"] == agents["quadruped_walk"]
+    cfg = config.load(task="reacher_easy", method="collodreamer")
+    assert config.uses_prior(cfg) and cfg.planner.init == "policy_cem"
+    assert (cfg.wm.reward_head, cfg.wm.loss_scales.reward) == ("twohot", 10.0)
+    paper = config.load(task="reacher_easy", method="collodreamer", presets=["paper"])
+    assert not config.uses_prior(paper) and paper.planner.iters == 50
+    assert (paper.wm.reward_head, paper.run.train_steps, paper.replay.batch) == ("mse", 100, 16)
+    # the baselines keep their own settings: the default's prior and reward head are its own
+    latco = config.load(task="reacher_easy", method="latco")
+    assert (latco.wm.reward_head, latco.run.train_steps, latco.planner.init) == ("mse", 100, "cem")
+    # without a prior its training keys are inert: a planner-alone run (planner.init=cem) resumes
+    # and combines with one written before the default set actor.starts
+    alone = config.load(task="reacher_easy", overrides=["planner.init=cem"])
+    older = config.load(task="reacher_easy", overrides=["planner.init=cem", "actor.starts=0"])
+    assert config.diff(alone, older) == []
+    assert config.diff(cfg, config.load(task="reacher_easy", overrides=["actor.starts=0"]))
 
 
 def test_one_seed_runs_unbatched_and_matches_the_vmapped_program():
