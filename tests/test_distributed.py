@@ -118,10 +118,17 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
     rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert {r["seed"] for r in rows} == set(range(seeds))
     assert (run / "checkpoints" / "400").is_dir()
-    if seeds != 4:
-        return
-    # trained further: the sharded replay, sized for 400 env steps, grows on resume (replay.resize)
-    longer = _train_ok(_train_debug(seeds=seeds, steps=800, run=run), env)
+
+
+@pytest.mark.slow  # make test resumes a resized replay on one device (test_trainer.py)
+def test_a_sharded_run_resumes_with_its_replay_grown(tmp_path):
+    """4 seeds on 2 devices, trained further: the sharded replay, sized for 400 env steps, grows
+    on resume (replay.resize)."""
+    run = tmp_path / "seeds4"
+    env = _env()
+    env.pop("XLA_FLAGS", None)
+    _train_ok(_train_debug(seeds=4, steps=400, run=run), env)
+    longer = _train_ok(_train_debug(seeds=4, steps=800, run=run), env)
     assert "resumed from" in longer.stdout and (run / "checkpoints" / "800").is_dir()
     assert "replay moved from 103 to 205 rows per env" in longer.stdout
 
