@@ -539,7 +539,7 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 def uses_prior(cfg: Config) -> bool:
     """Whether the planner starts from a learned policy prior (``planner.init: policy`` or
     ``policy_cem``): an actor network trained beside the world model (docs/ALGORITHM.md §4.10)."""
-    return cfg.planner.kind != "dreamer" and cfg.planner.init in ("policy", "policy_cem")
+    return _flat_uses_prior({"planner.kind": cfg.planner.kind, "planner.init": cfg.planner.init})
 
 
 # Float keys a one-compile sweep cannot vary: they decide the program's shapes or state.
