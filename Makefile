@@ -75,7 +75,7 @@ gl:
 preview: install gl
 	MUJOCO_GL=$${MUJOCO_GL:-osmesa} $(PY) -m envs.reference $(ENV) --out preview $(ARGS)
 
-# The CI suite: everything not marked slow (< 15 min on 2 cores).
+# The CI suite: everything not marked slow (~8 min warm, ~15-17 min cold on 2 cores: docs/OPERATIONS.md).
 test: install gl
 	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "not slow" $(PYTEST_ARGS)
 
