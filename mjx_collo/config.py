@@ -485,7 +485,10 @@ def check_prior(cfg: Config) -> None:
     """A policy prior's requirements, checked on the config alone (before anything compiles):
     it starts a collocation plan and learns from the value's returns. Raises ConfigError."""
     if uses_prior(cfg):
-        if cfg.planner.kind not in ("latco", "collodreamer"):
+        if cfg.planner.kind not in (
+            "latco",
+            "collodreamer",
+        ):  # planner.COLLOCATION (no import here)
             raise ConfigError(
                 f"planner.init={cfg.planner.init} starts a collocation plan from the policy "
                 f"prior; planner.kind={cfg.planner.kind} has no collocation plan (use latco or "
@@ -550,7 +553,7 @@ STATIC_FLOATS = {"explore.color"}
 def float_keys(cfg: Config) -> list[str]:
     """Dotted paths of every float leaf (the keys a sweep may vary within one compile), less the
     policy prior's objective weights when the run has no prior (they would change nothing)."""
-    unused = set() if uses_prior(cfg) else {"actor.pg", "actor.bc"}
+    unused = set() if uses_prior(cfg) else set(PRIOR_KEYS)
     return sorted(
         k
         for k, v in flatten(to_dict(cfg)).items()
