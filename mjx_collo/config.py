@@ -485,10 +485,8 @@ def check_prior(cfg: Config) -> None:
     """A policy prior's requirements, checked on the config alone (before anything compiles):
     it starts a collocation plan and learns from the value's returns. Raises ConfigError."""
     if uses_prior(cfg):
-        if cfg.planner.kind not in (
-            "latco",
-            "collodreamer",
-        ):  # planner.COLLOCATION (no import here)
+        # planner.COLLOCATION, spelled out: config imports nothing of the library
+        if cfg.planner.kind not in ("latco", "collodreamer"):
             raise ConfigError(
                 f"planner.init={cfg.planner.init} starts a collocation plan from the policy "
                 f"prior; planner.kind={cfg.planner.kind} has no collocation plan (use latco or "
