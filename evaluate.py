@@ -96,6 +96,14 @@ def main(argv=None) -> int:
         )
     means = returns.mean(1)
     print(f"{'all runs':<32s} {means.mean():8.1f} {means.std():8.1f}")
+    task = {k: np.asarray(v) for k, v in out["task"].items()}  # Env.eval_metrics, e.g. quadruped's
+    if task:
+        for i, row in enumerate(rows):
+            row["task"] = {k: float(v[i]) for k, v in task.items()}
+        print(
+            "task facts per run: "
+            + "; ".join(", ".join(f"{k} {v:.0f}" for k, v in row["task"].items()) for row in rows)
+        )
     prior = np.asarray(out["returns_prior"]) if "returns_prior" in out else None
     if prior is not None:  # the policy prior acting alone on the same episodes
         for row, r in zip(rows, prior, strict=True):

@@ -37,8 +37,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-UP = 0.5  # a start "on its feet": torso z-axis within 60 degrees of vertical
-ENDED_UP = 0.8
+# a start "on its feet" and an episode that ended up: the classes every evaluation logs
+from envs.quadruped import ENDED_UP, ENDED_UP_STEPS  # noqa: E402
+from envs.quadruped import START_ON_FEET as UP  # noqa: E402
 
 
 def physics_check(starts: int) -> dict:
@@ -204,10 +205,10 @@ def probe_run(run: Path) -> dict:
         up, f = obs[s, : count[s]], np.flatnonzero(first[s, : count[s]])
         eps = [up[a:b] for a, b in zip(f, [*f[1:], count[s]], strict=True) if b - a > 400]
         down = [u for u in eps if u[0] < UP]
-        got_up = sum(u[-100:].mean() > ENDED_UP for u in down)
+        got_up = sum(u[-ENDED_UP_STEPS:].mean() > ENDED_UP for u in down)
         side = sum(u[25:].max() > 0.0 for u in down)  # rolled at least onto a side, once landed
         on_feet = [u for u in eps if u[0] >= UP]
-        fell = sum(u[-100:].mean() <= ENDED_UP for u in on_feet)
+        fell = sum(u[-ENDED_UP_STEPS:].mean() <= ENDED_UP for u in on_feet)
         training.append(
             {
                 "episodes": len(eps),

@@ -284,6 +284,20 @@ class MjxTask(Env):
             metrics=metrics,
         )
 
+    def eval_signals(self, data: mjx.Data) -> dict[str, jax.Array]:
+        """Per-step quantities an evaluation records for :meth:`eval_metrics` (none by default;
+        quadruped: its torso's upright). ``data`` may carry a leading batch axis."""
+        del data
+        return {}
+
+    def eval_metrics(self, signals: dict[str, jax.Array], returns: jax.Array) -> dict:
+        """Task facts of one evaluation, logged beside its return as ``eval/<name>``: scalars from
+        ``signals`` (each ``[steps + 1, episodes]``, the reset state first) and the episodes'
+        ``returns``. None by default; quadruped counts its starts on their feet and the down
+        starts that got up, which its return depends on (docs/EXPERIMENTS.md)."""
+        del signals, returns
+        return {}
+
     def render_geom_xpos(self, data: mjx.Data, info: dict) -> jax.Array:
         """Geom positions to draw (``envs.render``): the physics' own, unless the task keeps part of
         its scene outside the model (reacher's target)."""

@@ -16,6 +16,11 @@ RUN_SPEED = 5.0
 DEFAULT_TIME_LIMIT = 20.0
 CONTROL_DT = 0.02
 HEIGHT_STEP = 0.01  # dm_control raises the body in 1 cm steps until nothing touches
+# Evaluation classes (eval_metrics; benchmarks/probe_quadruped.py uses the same): a start on its
+# feet (torso z-axis within 60 degrees of vertical at reset), an episode that ended up.
+START_ON_FEET = 0.5
+ENDED_UP = 0.8
+ENDED_UP_STEPS = 100  # agent steps at the episode's end
 
 # Tuned MJX options (evidence: envs/assets/README.md): floor-vs-body contacts only (dm_control
 # also lets legs touch each other and the torso; the random-policy return is unchanged), the
@@ -212,6 +217,33 @@ class QuadrupedMove(base.MjxTask):
             sigmoid="linear",
         )
         return upright * move
+
+    def eval_signals(self, data):
+        return {"upright": data.xmat[..., self._torso, 2, 2]}
+
+    def eval_metrics(self, signals, returns):
+        """How the episodes started and whether the down ones got up: a start is on its feet when
+        the torso's upright (the z component of its z-axis) is >= 0.5 at reset, and an episode
+        ended up when its upright averaged > 0.8 over the last 100 agent steps (the classes of
+        ``benchmarks/probe_quadruped.py``). The walk pays ~0 on the back, so a return is mostly
+        the number of starts on their feet until an agent learns to get up."""
+        u = signals["upright"]  # [steps + 1, episodes]
+        on_feet = u[0] >= START_ON_FEET
+        ended_up = u[-ENDED_UP_STEPS:].mean(0) > ENDED_UP
+        down = ~on_feet
+
+        def mean_of(mask):
+            n = mask.sum()
+            return jnp.where(
+                n > 0, jnp.sum(jnp.where(mask, returns, 0.0)) / jnp.maximum(n, 1), jnp.nan
+            )
+
+        return {
+            "starts_on_feet": on_feet.sum().astype(jnp.float32),
+            "got_up": (down & ended_up).sum().astype(jnp.float32),
+            "return_on_feet": mean_of(on_feet),
+            "return_down": mean_of(down),
+        }
 
 
 def quadruped_walk(physics: str = "tuned") -> QuadrupedMove:

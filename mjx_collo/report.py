@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from mjx_collo import metrics as metrics_lib
 from mjx_collo import study as study_lib
@@ -26,6 +27,7 @@ from mjx_collo.study import StudyConfig
 
 MAX_RETURN = 1000.0  # dm_control rewards are in [0, 1] per env step, 1000 steps per episode
 REPS = 2000  # bootstrap resamples
+FACTS = ("starts_on_feet", "got_up")  # the task facts a report shows (Env.eval_metrics)
 
 
 @dataclass
@@ -41,6 +43,10 @@ class Series:
     runs: int = 0
     platforms: list[str] = field(default_factory=list)
     prior_alone: bool = False  # the same runs acting with their policy prior alone (no cost row)
+    # the task's facts of each evaluation (Env.eval_metrics; quadruped: starts on their feet,
+    # down starts that got up): env step -> {name: [seeds]}, and the episodes per seed
+    facts: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
+    episodes: int = 0
 
     def at(self, step: int) -> np.ndarray | None:
         return self.evals.get(step)
@@ -67,6 +73,12 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
         else [{"seed": i} for i in range(n)]
     )
     names = [_label(variant, lab) for lab in labels]
+    cfg_file = cell_dir / "config.yaml"
+    episodes = (
+        int(yaml.safe_load(cfg_file.read_text()).get("run", {}).get("eval_episodes", 0))
+        if cfg_file.exists()
+        else 0
+    )
     host = cell_dir / "host.json"
     # where it ran: the platform, and on a CPU the model (speeds differ ~2x between VMs); a
     # record from before the model was kept says only "cpu"
@@ -93,6 +105,10 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
         s.env_steps = max((r["step"] for r in train), default=0)
         sps = [r["perf/env_steps_per_s"] for r in train if "perf/env_steps_per_s" in r]
         s.sps_per_run = float(np.median(sps)) if sps else float("nan")
+        for key in FACTS:
+            for step, v in _evals(rows, idx, f"eval/{key}").items():
+                s.facts.setdefault(step, {})[key] = v
+        s.episodes = episodes
         out[name] = s
         prior = _evals(rows, idx, "eval/return_prior")
         if prior:  # a policy-prior run's evaluations of the prior acting alone, same episodes
@@ -272,9 +288,43 @@ def _task_block(
             cells_[0] = f"{score} (at {_k(at)})" if at else score
         lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
     lines.append("")
+    lines += _facts_block(cfg, task, series, budgets)
     if "paper" in budgets:
         lines += [f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps.", ""]
     return lines
+
+
+def _facts_block(
+    cfg: StudyConfig, task: str, series: list[Series], budgets: list[int | str]
+) -> list[str]:
+    """Quadruped's evaluation facts beside its table: how many starts landed on their feet (the
+    walk pays ~0 on the back, so a figure is mostly this count until an agent gets up) and how
+    many down starts got up, over every seed's episodes at each budget."""
+    shown = [s for s in series if s.facts and not s.prior_alone]
+    if not shown:
+        return []
+    heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
+    lines = [
+        "Evaluation starts on their feet (torso upright >= 0.5 at reset) and down starts that got "
+        "up (upright > 0.8 over the last 100 agent steps), over all seeds' episodes:",
+        "",
+        "| variant | " + " | ".join(heads) + " |",
+        "|---" * (1 + len(heads)) + "|",
+    ]
+    for s in shown:
+        row = []
+        for x in budgets:
+            f = s.facts.get(b) if (b := _budget_of(cfg, task, x)) is not None else None
+            if not f or "starts_on_feet" not in f:
+                row.append("—")
+                continue
+            feet, n = int(f["starts_on_feet"].sum()), s.episodes * s.runs
+            up = int(f["got_up"].sum()) if "got_up" in f else 0
+            row.append(
+                f"{feet} of {n} on feet, {up} of {n - feet} got up" if n else f"{feet}, {up}"
+            )
+        lines.append(f"| {s.label} | " + " | ".join(row) + " |")
+    return lines + [""]
 
 
 def _shown(path: Path) -> str:

@@ -188,9 +188,11 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
             update={"planner": c.planner.model_copy(update={"iters": 0, "init": "policy"})}
         )
 
+    task = env.unwrapped  # the task's own evaluation facts (Env.eval_signals / eval_metrics)
+
     def episodes(s: TrainState, agent, key: jax.Array):
         """``run.eval_episodes`` deterministic episodes of ``agent`` -> (env state, returns
-        [episodes], episode 0's qpos [T, nq])."""
+        [episodes], episode 0's qpos [T, nq], the task's signals {name: [T + 1, episodes]})."""
         n = cfg.run.eval_episodes
         k_env, k_carry, key = jax.random.split(key, 3)
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, n))
@@ -215,24 +217,31 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
             a, carry = agent_lib.act(agent, actor_params, carry, k_act, training=False)
             env_state = jax.vmap(env.step)(env_state, a)
             qpos = env_state.pipeline_state.qpos[0]
-            return (env_state, carry, ret + env_state.reward), qpos
+            return (env_state, carry, ret + env_state.reward), (
+                qpos,
+                task.eval_signals(env_state.pipeline_state),
+            )
 
-        (env_state, _, returns), qpos = jax.lax.scan(
+        first = task.eval_signals(env_state.pipeline_state)
+        (env_state, _, returns), (qpos, signals) = jax.lax.scan(
             one_step, (env_state, carry, jnp.zeros((n,))), jnp.arange(episode_len)
         )
-        return env_state, returns, qpos
+        signals = {k: jnp.concatenate([first[k][None], v]) for k, v in signals.items()}
+        return env_state, returns, qpos, signals
 
     def evaluate(s: TrainState, key: jax.Array) -> dict[str, jax.Array]:
         """``run.eval_episodes`` deterministic episodes (no noise, clipped actions) with the current
-        parameters; nothing is stored. Returns returns [episodes] and episode 0's qpos [T, nq]
-        (and the reacher target of episode 0, ``target_xy``, where the task has one).
+        parameters; nothing is stored. Returns returns [episodes], episode 0's qpos [T, nq], the
+        task's facts of these episodes (``task``: {name: scalar}, Env.eval_metrics; quadruped:
+        starts on their feet, down starts that got up) and the reacher target of episode 0
+        (``target_xy``, where the task has one).
 
         A run with a policy prior also acts with the prior alone on the same episodes (the same
         starts and keys): ``returns_prior`` [episodes], so every evaluation shows what the plan
         adds to its start (docs/EXPERIMENTS.md: at 100k on cheetah, nothing on average)."""
         c, agent = bind(s.hyper)
-        env_state, returns, qpos = episodes(s, agent, key)
-        out = {"returns": returns, "qpos": qpos}
+        env_state, returns, qpos, signals = episodes(s, agent, key)
+        out = {"returns": returns, "qpos": qpos, "task": task.eval_metrics(signals, returns)}
         if "target_xy" in env_state.info:
             out["target_xy"] = env_state.info["target_xy"][0]
         if agent.uses_prior and (cfg.planner.iters > 0 or cfg.planner.init != "policy"):

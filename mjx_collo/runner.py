@@ -16,7 +16,7 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -45,6 +45,17 @@ def host(tree: Any) -> Any:
             lambda x: np.asarray(multihost_utils.process_allgather(x, tiled=True)), tree
         )
     return jax.device_get(tree)
+
+
+class Evaluation(NamedTuple):
+    """One evaluation of every run (:meth:`Run.start_evaluation`)."""
+
+    returns: np.ndarray  # [runs, episodes]
+    seconds: float
+    prior: np.ndarray | None  # the policy prior acting alone on the same episodes, or None
+    task: dict[
+        str, np.ndarray
+    ]  # the task's facts of the episodes, {name: [runs]} (Env.eval_metrics)
 
 
 class TrainingDiverged(RuntimeError):
@@ -399,11 +410,10 @@ class Run:
 
     def evaluate(self, state, env_steps: int) -> np.ndarray:
         """``run.eval_episodes`` deterministic episodes per run: returns ``[runs, episodes]``."""
-        return self.start_evaluation(state, env_steps).result()[0]
+        return self.start_evaluation(state, env_steps).result().returns
 
     def start_evaluation(self, state, env_steps: int) -> Future:
-        """Start the evaluation at ``env_steps``; the future gives ``(returns, seconds, the
-        returns of the policy prior acting alone on the same episodes or None)``.
+        """Start the evaluation at ``env_steps``; the future gives an :class:`Evaluation`.
 
         With an evaluation device the state is copied there (the copy done before this returns,
         since the next chunk takes the state's buffers) and the episodes run in a thread while
@@ -418,7 +428,7 @@ class Run:
         moved = jax.block_until_ready(jax.device_put((state, key), self.eval_device))
         return self._eval_pool.submit(self._evaluate, *moved)
 
-    def _evaluate(self, state, key) -> tuple[np.ndarray, float, np.ndarray | None]:
+    def _evaluate(self, state, key) -> Evaluation:
         t = time.perf_counter()
         if self._eval_compiled is None:  # AOT from shapes, like the chunk (see lower())
             sharding = (
@@ -432,7 +442,8 @@ class Run:
             ).compile()
         out = host(self._eval_compiled(state, key))
         prior = np.asarray(out["returns_prior"]) if "returns_prior" in out else None
-        return np.asarray(out["returns"]), time.perf_counter() - t, prior  # [S, episodes]
+        task = {k: np.asarray(v) for k, v in out["task"].items()}
+        return Evaluation(np.asarray(out["returns"]), time.perf_counter() - t, prior, task)
 
     def run(self, total_env_steps: int | None = None, max_chunks: int | None = None) -> RunResult:
         cfg = self.cfg
@@ -481,15 +492,19 @@ class Run:
             if pending is None or not (block or pending[1].done()):
                 return
             (step, future), pending = pending, None
-            returns, secs, prior = future.result()
-            result.eval_s.append(secs)
-            result.eval_returns.append((step, returns))
-            row = {"eval/return": returns.mean(1), "eval/return_std": returns.std(1)}
-            if prior is not None:  # the policy prior acting alone, same episodes
+            ev = future.result()
+            result.eval_s.append(ev.seconds)
+            result.eval_returns.append((step, ev.returns))
+            row = {"eval/return": ev.returns.mean(1), "eval/return_std": ev.returns.std(1)}
+            if ev.prior is not None:  # the policy prior acting alone, same episodes
                 row.update(
-                    {"eval/return_prior": prior.mean(1), "eval/return_prior_std": prior.std(1)}
+                    {
+                        "eval/return_prior": ev.prior.mean(1),
+                        "eval/return_prior_std": ev.prior.std(1),
+                    }
                 )
-            row.update({"perf/eval_s": np.full(self.num_runs, secs), "perf/wall_s": wall()})
+            row.update({f"eval/{k}": v for k, v in ev.task.items()})
+            row.update({"perf/eval_s": np.full(self.num_runs, ev.seconds), "perf/wall_s": wall()})
             log.write(step, "eval", row)
             log.progress(env_steps)
 

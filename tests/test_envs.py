@@ -200,3 +200,37 @@ def test_quadruped_does_not_get_up_by_energy_injection():
     assert (ref_up, ref_unstable) == (0, 0), "dm_control's options changed: recheck the reference"
     assert unstable == 0, f"tuned quadruped went unstable in {unstable} of 40 episodes"
     assert up <= ref_up + 2, f"tuned quadruped got up from {up} of 40 down starts (dm_control: 0)"
+
+
+def test_quadruped_evaluation_counts_starts_on_feet_and_get_ups():
+    """A quadruped figure is mostly how many starts landed on their feet until an agent learns to
+    get up (docs/EXPERIMENTS.md), so every evaluation logs both: the torso's upright read from the
+    physics matches the observation's, and the classes count as benchmarks/probe_quadruped.py."""
+    from envs import quadruped
+
+    env = envs.make("quadruped_walk")
+    states = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(3), 16))
+    up = np.asarray(env.eval_signals(states.pipeline_state)["upright"])
+    ui = len(env._hinge_q) + len(env._hinge_v) + env.mj_model.na + 3  # ego, velocimeter, upright
+    np.testing.assert_allclose(up, np.asarray(states.obs)[:, ui], atol=1e-6)
+    assert up.min() < quadruped.START_ON_FEET <= up.max()  # random orientations: some of each
+
+    steps = 500
+    t = np.linspace(0.0, 1.0, steps + 1)[:, None]
+    trajectories = np.concatenate(  # reset state first; one column per episode
+        [
+            np.full((steps + 1, 1), 0.95),  # on its feet, walks
+            -1.0 + 1.95 * np.minimum(t * 2, 1.0),  # on its back, gets up halfway through
+            np.full((steps + 1, 1), -0.9),  # on its back, stays there
+            0.9 - 1.8 * np.minimum(t * 4, 1.0),  # on its feet, falls on its back
+        ],
+        axis=1,
+    )
+    returns = jnp.array([600.0, 300.0, 20.0, 60.0])
+    m = env.eval_metrics({"upright": jnp.asarray(trajectories)}, returns)
+    assert float(m["starts_on_feet"]) == 2 and float(m["got_up"]) == 1
+    assert float(m["return_on_feet"]) == pytest.approx(330.0)
+    assert float(m["return_down"]) == pytest.approx(160.0)
+    none_up = env.eval_metrics({"upright": jnp.asarray(trajectories[:, 1:3])}, returns[1:3])
+    assert np.isnan(float(none_up["return_on_feet"]))  # no such start: not logged (NaN skipped)
+    assert envs.make("cheetah_run").eval_metrics({}, returns) == {}  # other tasks log nothing

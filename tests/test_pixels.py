@@ -37,6 +37,12 @@ def _check(task, tmp_path):
     evals = [r for r in rows if r["kind"] == "eval"]
     assert train and all(np.isfinite(r["wm/loss/obs"]) for r in train)
     assert evals and np.isfinite(evals[-1]["eval/return"])
+    if task.startswith("quadruped"):  # the task's facts of each evaluation (Env.eval_metrics)
+        n = cfg.run.eval_episodes
+        assert 0 <= evals[-1]["eval/starts_on_feet"] <= n
+        assert 0 <= evals[-1]["eval/got_up"] <= n - evals[-1]["eval/starts_on_feet"]
+    else:
+        assert "eval/starts_on_feet" not in evals[-1]
     saved = yaml.safe_load((res.run_dir / "config.yaml").read_text())
     assert saved["env"]["obs"] == "pixels"
     assert obs.dtype == np.uint8 and obs.shape[-3:] == (64, 64, 3)

@@ -284,6 +284,37 @@ def test_a_prior_runs_prior_alone_evaluations_are_a_series_of_their_own(tmp_path
     assert np.isclose(report._ci(np.array([50.0, 70.0]))[0], 60.0)
 
 
+def test_quadruped_reports_show_the_starts_on_their_feet_and_the_get_ups(tmp_path):
+    """A quadruped figure is mostly how many evaluation starts landed on their feet: a cell whose
+    evaluations log the task's facts (Env.eval_metrics) reports them beside its table, summed over
+    seeds, out of the episodes its config.yaml ran; the prior alone shares them (same episodes)."""
+    _, cfg = study.load(str(SMOKE))
+    cell = tmp_path / "results" / "reacher_easy" / "collodreamer"
+    cell.mkdir(parents=True)
+    rows = []
+    for step in (400, 800):
+        for seed, (feet, up) in enumerate(((1.0, 0.0), (2.0, 1.0))):
+            rows.append({"step": step, "seed": seed, "kind": "train", "perf/wall_s": 1.0})
+            rows.append(
+                {
+                    "step": step,
+                    "seed": seed,
+                    "kind": "eval",
+                    "eval/return": 100.0,
+                    "eval/return_prior": 90.0,
+                    "eval/starts_on_feet": feet,
+                    "eval/got_up": up * (step == 800),
+                }
+            )
+    (cell / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    (cell / "config.yaml").write_text("run:\n  eval_episodes: 5\n")
+    md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
+    line = next(x for x in md.splitlines() if x.startswith("| collodreamer | "))
+    assert line == "| collodreamer | 3 of 10 on feet, 1 of 7 got up |", line
+    facts = md.split("Evaluation starts on their feet")[1].split("## Aggregate")[0]
+    assert line in facts and "prior alone" not in facts
+
+
 def test_ablation_study_is_the_issue_grid():
     """Seven sections on cheetah_run, 3 seeds x 50k; the plan objective on reacher_easy too; the
     default runs once for all the sections that compare against it; discount is one sweep."""
