@@ -81,7 +81,7 @@ test: install gl
 
 # Everything, including the statistical env-parity, learning and multi-process tests.
 test-all: install gl
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	MJX_COLLO_TEST_FULL_OPT=1 $(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: install
 	$(PY) -m ruff check .

@@ -18,10 +18,15 @@ from mjx_collo import host_devices
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _env(**extra) -> dict:
+def _env(devices: int | None = None) -> dict:
+    """The suite's environment for a subprocess, with its compile flags but without a device
+    count: ``devices`` forces one, else host_devices picks it."""
     env = dict(os.environ)
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if "device_count" not in f]
+    if devices is not None:
+        flags.append(f"--xla_force_host_platform_device_count={devices}")
+    env["XLA_FLAGS"] = " ".join(flags)
     env["PYTHONPATH"] = f"{ROOT}{os.pathsep}{env.get('PYTHONPATH', '')}"
-    env.update(extra)
     return env
 
 
@@ -29,7 +34,7 @@ def _env(**extra) -> dict:
 def test_sharded_seed_axis_equals_unsharded():
     proc = subprocess.run(
         [sys.executable, str(ROOT / "tests" / "sharding_check.py")],
-        env=_env(XLA_FLAGS="--xla_force_host_platform_device_count=2"),
+        env=_env(devices=2),
         capture_output=True,
         text=True,
         timeout=1500,
@@ -110,7 +115,6 @@ def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
     arrive within 40 s; the check now runs on the host."""
     run = tmp_path / f"seeds{seeds}"
     env = _env()
-    env.pop("XLA_FLAGS", None)
     proc = _train_ok(_train_debug(seeds=seeds, steps=400, run=run), env)
     devices = host_devices.configure(seeds, {})
     split = f"{devices} cpu devices ({seeds // devices} run(s) each)"
@@ -126,7 +130,6 @@ def test_a_sharded_run_resumes_with_its_replay_grown(tmp_path):
     on resume (replay.resize)."""
     run = tmp_path / "seeds4"
     env = _env()
-    env.pop("XLA_FLAGS", None)
     _train_ok(_train_debug(seeds=4, steps=400, run=run), env)
     longer = _train_ok(_train_debug(seeds=4, steps=800, run=run), env)
     assert "resumed from" in longer.stdout and (run / "checkpoints" / "800").is_dir()
@@ -138,7 +141,6 @@ def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_pat
     run on the second, overlapping the next chunk. The returns equal those of evaluating in line
     (run.eval_overlap=false), and every evaluation is logged and plotted, the last one included."""
     env = _env()
-    env.pop("XLA_FLAGS", None)
     returns = {}
     for name, extra in (("overlap", []), ("inline", ["run.eval_overlap=false"])):
         run = tmp_path / name

@@ -72,8 +72,8 @@ def test_a_bad_row_before_the_last_is_damage_and_named(tmp_path):
 def _train(run_dir: Path, *args: str, **kw) -> subprocess.Popen:
     env = {
         **os.environ,
-        "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla"),
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=1",  # the trainer tests' programs
+        # the trainer tests' programs: one device, the suite's compile flags (conftest.py)
+        "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=1",
     }
     cmd = [sys.executable, str(ROOT / "train.py"), "--env", "reacher_easy", "--run", str(run_dir)]
     return subprocess.Popen(

@@ -138,7 +138,7 @@ def _study(args: list[str], tmp: Path) -> subprocess.CompletedProcess:
     env = {
         **os.environ,
         "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla"),
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=1",
+        "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=1",
     }
     cmd = [sys.executable, str(ROOT / "study.py"), *args, str(SMOKE)]
     cmd += ["--root", str(tmp / "runs"), "--results", str(tmp / "results")]

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -202,14 +201,12 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _cli(script: str, argv: list[str]) -> subprocess.CompletedProcess:
     """Run ``train.py`` / ``evaluate.py`` as a user does (a fresh process, the test suite's
-    compile cache)."""
-    env = {**os.environ, "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla")}
+    compile cache and flags, conftest.py)."""
     return subprocess.run(
         [sys.executable, str(ROOT / script), *argv],
         capture_output=True,
         text=True,
         cwd=ROOT,
-        env=env,
         timeout=600,
     )
 
