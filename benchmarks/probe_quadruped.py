@@ -300,6 +300,7 @@ def main(argv=None) -> int:
 
     session.setup_jax()
     out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)  # a new --out folder, before the work
     if args.only:
         result = json.loads(out.read_text()) if out.exists() else {}
         if args.only == "exploration":
