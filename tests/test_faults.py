@@ -236,7 +236,8 @@ def test_when_no_step_restores_the_error_names_each_one(tmp_path):
 
 
 def _train_cli(run_dir: Path, *args: str, cache: Path | None = None) -> subprocess.Popen:
-    env = {**os.environ, "MJX_COLLO_CACHE": str(cache or ROOT / ".pytest_cache" / "xla")}
+    # the suite's compile cache (conftest.py) unless the test gives its own
+    env = {**os.environ, **({"MJX_COLLO_CACHE": str(cache)} if cache else {})}
     cmd = [sys.executable, str(ROOT / "train.py"), "--run", str(run_dir), "--no-progress"]
     return subprocess.Popen(
         cmd + list(args),
@@ -329,7 +330,6 @@ def test_resume_and_eval_pass_over_a_damaged_newest_checkpoint(tmp_path):
         text=True,
         cwd=ROOT,
         timeout=900,
-        env={**os.environ, "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla")},
     )
     assert ev.returncode == 0, (ev.stdout, ev.stderr)
     assert "checkpoint step 1200 skipped, damaged or partial" in ev.stderr

@@ -137,7 +137,6 @@ def _study(args: list[str], tmp: Path) -> subprocess.CompletedProcess:
     # test_methods.py (same configs), which the persistent compile cache shares.
     env = {
         **os.environ,
-        "MJX_COLLO_CACHE": str(ROOT / ".pytest_cache" / "xla"),
         "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=1",
     }
     cmd = [sys.executable, str(ROOT / "study.py"), *args, str(SMOKE)]
