@@ -54,13 +54,14 @@ class Stop:
             self.child.send_signal(signum)
 
 
-def train_cell(cell, run_dir: Path, stop: Stop) -> int:
-    """Train (or resume) one cell with train.py; its output is shown and appended to
-    ``<run_dir>/train.log``."""
+def train_cell(cell, run_dir: Path, stop: Stop, part=None) -> int:
+    """Train (or resume) one cell (or one program of it, ``part``) with train.py; its output is
+    shown and appended to ``<run_dir>/train.log``."""
     from mjx_collo import study as study_lib
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, str(ROOT / "train.py"), *study_lib.train_args(cell, run_dir)]
+    cmd = [sys.executable, str(ROOT / "train.py"), *study_lib.train_args(cell, run_dir, part)]
+    tag = f"{cell.key} {part.name}" if part and part.name else cell.key
     with open(run_dir / "train.log", "a") as log:
         log.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} {' '.join(cmd)}\n")
         log.flush()
@@ -68,7 +69,7 @@ def train_cell(cell, run_dir: Path, stop: Stop) -> int:
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT
         )
         for line in stop.child.stdout:
-            sys.stdout.write(f"[{cell.key}] {line}")
+            sys.stdout.write(f"[{tag}] {line}")
             sys.stdout.flush()
             log.write(line)
         code = stop.child.wait()
@@ -129,7 +130,6 @@ def main(argv: list[str] | None = None) -> int:
     if added:
         print(f"study {name} grew since it started: {', '.join(added)} (cells trained so far kept)")
     for i, cell in enumerate(cells, 1):
-        run_dir = study.cell_dir(root, cell)
         if study.is_finished(root, cell):
             study.collect(root, cell, results)
             print(f"[{i}/{len(cells)}] {cell.key}: finished, skipped")
@@ -141,15 +141,29 @@ def main(argv: list[str] | None = None) -> int:
         if args.max_cells is not None and trained >= args.max_cells:
             print(f"stopping after {trained} cell(s) (--max-cells)")
             break
-        print(f"[{i}/{len(cells)}] {cell.key}: training {cell.steps} env steps -> {run_dir}")
-        code = train_cell(cell, run_dir, stop)
+        parts = study.parts(root, cell)
+        for part in parts:
+            where = f"{cell.key} {part.name}" if part.name else cell.key
+            if len(parts) > 1:
+                if study.part_finished(part, cell):
+                    print(f"[{i}/{len(cells)}] {where}: finished, skipped")
+                    continue
+                if study.recorded_finished(results, cell, part.labels):
+                    print(f"[{i}/{len(cells)}] {where}: finished in the committed record, skipped")
+                    continue
+                last = part.first + part.seeds - 1
+                seeds = f"seed {last}" if part.seeds == 1 else f"seeds {part.first}-{last}"
+                where += f" ({seeds} of {cell.seeds})"
+            print(f"[{i}/{len(cells)}] {where}: training {cell.steps} env steps -> {part.dir}")
+            code = train_cell(cell, part.dir, stop, part)
+            study.collect(root, cell, results)
+            if stop.signum is not None:
+                print(f"study {name} interrupted in {where}; the same command resumes it")
+                return 128 + stop.signum
+            if code != 0 or not study.part_finished(part, cell):
+                failed.append(f"{where} (exit {code}, log {part.dir / 'train.log'})")
+                break
         trained += 1
-        study.collect(root, cell, results)
-        if stop.signum is not None:
-            print(f"study {name} interrupted in {cell.key}; the same command resumes it")
-            return 128 + stop.signum
-        if code != 0 or not study.is_finished(root, cell):
-            failed.append(f"{cell.key} (exit {code}, log {run_dir / 'train.log'})")
     if not args.no_report:
         print(f"wrote {report.write(name, cfg, results, out)}")
     if failed:

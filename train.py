@@ -22,6 +22,13 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
         help="collodreamer | latco | dreamer | cem | mppi | mppi_value",
     )
     p.add_argument("--seeds", type=int, default=1, help="independent seeds, vmapped in one program")
+    p.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="train seeds K..K+N-1 (N = --seeds): more seeds for a run, or a run's seeds as "
+        "separate programs, each keyed as in one vmapped run",
+    )
     p.add_argument("--steps", type=int, default=None, help="env steps (action repeat included)")
     p.add_argument("--run", default=None, help="run directory (default runs/<task>-<method>-...)")
     p.add_argument(
@@ -89,6 +96,11 @@ def main(argv: list[str] | None = None) -> int:
         sweep = config.parse_sweep(args.sweep, cfg) if args.sweep else {}
         if args.seeds < 1:
             raise config.ConfigError(f"--seeds must be >= 1, got {args.seeds}")
+        if args.first_seed < 0 or (args.first_seed and sweep):
+            raise config.ConfigError(
+                f"--first-seed {args.first_seed}: give a seed index >= 0, and no --sweep (a "
+                "sweep's seeds train together)"
+            )
     except (envs.UnknownTaskError, config.ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -98,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.run)
         if args.run
         else session.default_run_dir(
-            task, args.method, args.seeds, args.preset, args.sweep, args.overrides
+            task, args.method, args.seeds, args.preset, args.sweep, args.overrides, args.first_seed
         )
     )
     import jax
@@ -111,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     print(
         f"mjx_collo: {args.method} on {task}, {args.seeds} seed(s)"
+        + (f" from seed {args.first_seed}" if args.first_seed else "")
         + (f" x sweep {sweep}" if sweep else "")
         + f", {cfg.run.steps} env steps -> {run_dir}"
     )
@@ -122,7 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     env = envs.from_config(cfg.env)
     try:
         r = runner.Run(
-            cfg, env, run_dir, num_seeds=args.seeds, sweep=sweep, progress=not args.no_progress
+            cfg,
+            env,
+            run_dir,
+            num_seeds=args.seeds,
+            sweep=sweep,
+            progress=not args.no_progress,
+            first_seed=args.first_seed,
         )
         if r.sharding is not None:
             devices = r.sharding.mesh.devices

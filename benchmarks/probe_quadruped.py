@@ -227,7 +227,7 @@ def probe_run(run: Path) -> dict:
 
     torso = mujoco.mj_name2id(base.mj_model, mujoco.mjtObj.mjOBJ_BODY, "torso")
     n = cfg.run.eval_episodes
-    seed_keys = parallel.seed_keys(cfg, meta["num_runs"])
+    seed_keys = parallel.seed_keys(cfg, meta["num_runs"], parallel.first_seed(meta["labels"]))
 
     @jax.jit
     def starts(key):  # rollout.episodes: k_env, k_carry, key = split(key, 3)

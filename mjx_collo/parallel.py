@@ -16,22 +16,41 @@ from mjx_collo.config import Config, ConfigError
 from mjx_collo.trainer import Trainer
 
 
-def seed_keys(cfg: Config, num_seeds: int) -> jax.Array:
-    """Independent keys for ``num_seeds`` seeds from ``run.seed`` ([S, 2])."""
+def seed_keys(cfg: Config, num_seeds: int, first: int = 0) -> jax.Array:
+    """Independent keys for seeds ``first .. first + num_seeds - 1`` from ``run.seed`` ([S, 2]).
+
+    Seed i has the same key whichever program trains it, so seeds 2-3 trained alone
+    (``--first-seed 2``) are the seeds 2-3 of a vmapped ``--seeds 4`` run."""
     base = jax.random.PRNGKey(cfg.run.seed)
-    return jax.vmap(lambda i: jax.random.fold_in(base, i))(jnp.arange(num_seeds))
+    return jax.vmap(lambda i: jax.random.fold_in(base, i))(first + jnp.arange(num_seeds))
+
+
+def first_seed(labels: list[dict]) -> int:
+    """The first seed index of a run's labels (``seeds.json``, checkpoint metadata): 0 for a
+    sweep, whose keys follow the run index."""
+    if not labels or any(set(lab) - {"seed"} for lab in labels):
+        return 0
+    return int(labels[0].get("seed", 0))
 
 
 def sweep_grid(
-    sweep: dict[str, list[float]], seeds: int
+    sweep: dict[str, list[float]], seeds: int, first: int = 0
 ) -> tuple[int, dict[str, jax.Array], list[dict[str, float]]]:
     """Cartesian product of swept values x seeds -> (S total, hyper {key: [S]}, per-run labels).
 
-    A key ``a+b`` (``config.parse_sweep``) is one axis whose values both keys take together."""
+    A key ``a+b`` (``config.parse_sweep``) is one axis whose values both keys take together.
+    ``first``: the seeds are ``first .. first + seeds - 1`` (not with a sweep)."""
+    if first and sweep:
+        raise ConfigError(
+            "--first-seed trains a slice of one seed axis; a --sweep's runs are keyed by their "
+            "place in the grid, so train a sweep's seeds together (drop --first-seed)"
+        )
+    if first < 0:
+        raise ConfigError(f"--first-seed must be >= 0, got {first}")
     combos: list[dict[str, float]] = [{}]
     for k in sorted(sweep):
         combos = [{**c, **dict.fromkeys(k.split("+"), v)} for c in combos for v in sweep[k]]
-    labels = [dict(c, seed=i) for c in combos for i in range(seeds)]
+    labels = [dict(c, seed=first + i) for c in combos for i in range(seeds)]
     keys = sorted(p for k in sweep for p in k.split("+"))
     hyper = {k: jnp.asarray([lab[k] for lab in labels], jnp.float32) for k in keys}
     return len(labels), hyper, labels

@@ -41,6 +41,7 @@ class Series:
     env_steps: int = 0
     sps_per_run: float = float("nan")
     runs: int = 0
+    per_program: int = 0  # runs trained together in one program (all of them, unless in parts)
     platforms: list[str] = field(default_factory=list)
     prior_alone: bool = False  # the same runs acting with their policy prior alone (no cost row)
     # the task's facts of each evaluation (Env.eval_metrics; quadruped: starts on their feet,
@@ -80,29 +81,47 @@ def load_cell(cell_dir: Path, variant: study_lib.Variant) -> list[Series]:
         else 0
     )
     host = cell_dir / "host.json"
+    hosts = json.loads(host.read_text()) if host.exists() else []
     # where it ran: the platform, and on a CPU the model (speeds differ ~2x between VMs); a
     # record from before the model was kept says only "cpu"
-    platforms = (
-        sorted(
-            {
-                f"{h.get('platform', '?')}: {h['cpu']}"
-                if h.get("platform") == "cpu" and h.get("cpu")
-                else h.get("platform", "?")
-                for h in json.loads(host.read_text())
-            }
-        )
-        if host.exists()
-        else []
+    platforms = sorted(
+        {
+            f"{h.get('platform', '?')}: {h['cpu']}"
+            if h.get("platform") == "cpu" and h.get("cpu")
+            else h.get("platform", "?")
+            for h in hosts
+        }
     )
+    # the programs that trained the cell: one, or the seed groups of a cell trained in parts
+    # (study seeds_per_program; their host.json entries name the seeds)
+    seed_of = [int(lab.get("seed", i)) for i, lab in enumerate(labels)]
+    programs = {tuple(h["seeds"]) for h in hosts if h.get("seeds")} or {tuple(seed_of)}
     out: dict[str, Series] = {}
     for name in dict.fromkeys(names):
         idx = [i for i, x in enumerate(names) if x == name]
         s = Series(label=name, variant=variant.name, runs=len(idx), platforms=platforms)
         s.evals = _evals(rows, idx, "eval/return")
-        walls = [r["perf/wall_s"] for r in rows if "perf/wall_s" in r]
-        s.wall_s = max(walls) if walls else float("nan")
+        # wall time: the programs one after another, each from its first launch to its last row
+        walls = [
+            max(
+                (
+                    r["perf/wall_s"]
+                    for r in rows
+                    if "perf/wall_s" in r and r["seed"] < len(seed_of) and seed_of[r["seed"]] in p
+                ),
+                default=None,
+            )
+            for p in programs
+        ]
+        walls = [w for w in walls if w is not None]
+        s.wall_s = sum(walls) if walls else float("nan")
+        s.per_program = max(len(p) for p in programs) if len(programs) > 1 else len(idx)
         train = [r for r in rows if r["kind"] == "train" and r["seed"] == idx[0]]
-        s.env_steps = max((r["step"] for r in train), default=0)
+        # where every run has got to (the parts of a cell trained in parts reach it one by one)
+        s.env_steps = min(
+            max((r["step"] for r in rows if r["kind"] == "train" and r["seed"] == i), default=0)
+            for i in idx
+        )
         sps = [r["perf/env_steps_per_s"] for r in train if "perf/env_steps_per_s" in r]
         s.sps_per_run = float(np.median(sps)) if sps else float("nan")
         for key in FACTS:
@@ -354,7 +373,7 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
             if s.env_steps and not s.prior_alone:
                 cost_rows.append(
                     f"| {cell.task} | {s.label} | {s.runs} | {_k(s.env_steps)} | "
-                    f"{s.wall_s / 60:.0f} | {s.sps_per_run:.1f} | {s.sps_per_run * s.runs:.1f} | "
+                    f"{s.wall_s / 60:.0f} | {s.sps_per_run:.1f} | {s.sps_per_run * s.per_program:.1f} | "
                     f"{'; '.join(s.platforms) or '?'} |"
                 )
     partial = bool(missing)
@@ -414,10 +433,11 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
         "## Cost",
         "",
         "Wall time from the cell's first launch to its last row (compiles and evaluations "
-        "included); env steps/s of a steady training chunk, per run and for all runs of the cell "
-        "together (they train in one program).",
+        "included; a cell trained in parts, its seeds a few at a time, adds its programs' "
+        "times); env steps/s of a steady training chunk, per run and for the runs that train "
+        "together in one program (all of the cell's, unless it trained in parts).",
         "",
-        "| task | variant | runs | env steps | wall min | env steps/s per run | env steps/s all runs | ran on |",
+        "| task | variant | runs | env steps | wall min | env steps/s per run | env steps/s per program | ran on |",
         "|---|---|---|---|---|---|---|---|",
         *cost_rows,
         "",

@@ -140,17 +140,20 @@ class Run:
         sweep: dict[str, list[float]] | None = None,
         progress: bool = True,
         log=print,
+        first_seed: int = 0,
     ):
         self.cfg, self.env, self.log = cfg, env, log
         self.dir = Path(run_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.num_runs, self.hyper, self.labels = parallel.sweep_grid(sweep or {}, num_seeds)
+        self.num_runs, self.hyper, self.labels = parallel.sweep_grid(
+            sweep or {}, num_seeds, first_seed
+        )
         self.trainer = trainer_lib.make_train(cfg, env)
         self.budget: dict[str, float] | None = None  # matmul work by schedule (compile())
         self.sharding = parallel.mesh_sharding(self.num_runs)
         self.init_fn, self.chunk_fn, self.eval_fn = parallel.batched(self.trainer, self.sharding)
         self.ckpt = ckpt_lib.Checkpointer(self.dir / "checkpoints", keep=cfg.run.keep_checkpoints)
-        self.keys = self._put(parallel.seed_keys(cfg, self.num_runs))
+        self.keys = self._put(parallel.seed_keys(cfg, self.num_runs, first_seed))
         self.hyper = self._put(self.hyper)
         self.main = is_main_process()
         self.progress = progress and self.main

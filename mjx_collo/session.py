@@ -38,11 +38,18 @@ def setup_jax() -> None:
 
 
 def default_run_dir(
-    task: str, method: str, seeds: int, presets: list[str], sweep: str | None, overrides: list[str]
+    task: str,
+    method: str,
+    seeds: int,
+    presets: list[str],
+    sweep: str | None,
+    overrides: list[str],
+    first_seed: int = 0,
 ) -> Path:
-    """``runs/<task>-<method>-s<seeds>[-<presets>][-<hash of overrides and sweep>]``:
-    deterministic per command, so re-running the same command resumes it."""
-    parts = [task, method, f"s{seeds}"] + presets
+    """``runs/<task>-<method>-s<seeds>[from<first seed>][-<presets>][-<hash of overrides and
+    sweep>]``: deterministic per command, so re-running the same command resumes it."""
+    seeds_part = f"s{seeds}" + (f"from{first_seed}" if first_seed else "")
+    parts = [task, method, seeds_part] + presets
     extra = " ".join(sorted(overrides)) + (f" sweep={sweep}" if sweep else "")
     if extra:
         parts.append(hashlib.sha1(extra.encode()).hexdigest()[:8])
@@ -169,7 +176,7 @@ def restore_state(
     from mjx_collo import parallel, trainer
 
     n = meta["num_runs"]
-    keys = parallel.seed_keys(cfg, n)
+    keys = parallel.seed_keys(cfg, n, parallel.first_seed(meta["labels"]))
     # the swept values themselves are restored from the checkpoint (state.hyper); only shapes here
     hyper = {k: np.zeros(n, np.float32) for k in meta["labels"][0] if k != "seed"}
     init = trainer.make_train(cfg, env).init

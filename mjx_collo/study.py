@@ -17,6 +17,12 @@ only grows (new variants or tasks: the cells trained so far stay what they were)
 After each cell, and before it starts, the cell's small files (``config.yaml``, ``metrics.jsonl``,
 ``seeds.json``, ``host.json``) are copied to ``results/study/<name>/<task>/<variant>/``, the
 committed record the report reads.
+
+A variant with ``seeds_per_program: k`` trains its cells' seeds k at a time, each group a
+program and run directory of its own (``<cell>/seed0``, ``<cell>/seeds2-3``): the same seeds
+with the same keys (``train.py --first-seed``), in pieces short enough for one sitting. A
+piece is skipped once its seeds' final evaluations are in the committed record, whose files
+merge the pieces (``host.json`` entries name the seeds each launch trained).
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import json
 import re
 import shutil
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -59,6 +65,12 @@ class Variant(_Strict):
     )
     tasks: list[str] | None = Field(None, description="the study's tasks this runs on (all)")
     sections: list[str] = Field([], description="report sections that show this variant")
+    seeds_per_program: int | None = Field(
+        None,
+        ge=1,
+        description="train a cell's seeds this many at a time, each group its own program and "
+        "run directory (a cell longer than one sitting); none: all seeds in one program",
+    )
 
     @field_validator("name")
     @classmethod
@@ -163,6 +175,11 @@ def _check(path: Path, cfg: StudyConfig) -> None:
             raise StudyError(
                 f"{path}: variant {v.name} names sections {unknown}; define them under sections:"
             )
+        if v.seeds_per_program and v.sweep:
+            raise StudyError(
+                f"{path}: variant {v.name} has a sweep and seeds_per_program; a sweep's runs "
+                "train in one program, so drop seeds_per_program"
+            )
     for task in cfg.tasks:
         try:
             envs.canonical(task)
@@ -218,9 +235,40 @@ def cell_dir(root: Path, cell: Cell) -> Path:
     return Path(root) / cell.task / cell.variant.name
 
 
-def train_args(cell: Cell, run_dir: Path) -> list[str]:
-    """``train.py`` arguments that train (or resume) the cell in ``run_dir``."""
-    args = ["--env", cell.task, "--method", cell.variant.method, "--seeds", str(cell.seeds)]
+class Part(NamedTuple):
+    """The seeds ``first .. first + seeds - 1`` of a cell, trained as one program in ``dir``."""
+
+    first: int
+    seeds: int
+    dir: Path
+    name: str  # "" for a cell trained whole
+
+    @property
+    def labels(self) -> list[int]:
+        return list(range(self.first, self.first + self.seeds))
+
+
+def parts(root: Path, cell: Cell) -> list[Part]:
+    """The programs that train the cell: one (in the cell's directory) unless its variant sets
+    ``seeds_per_program`` below the study's seeds."""
+    k = cell.variant.seeds_per_program
+    top = cell_dir(root, cell)
+    if not k or k >= cell.seeds:
+        return [Part(0, cell.seeds, top, "")]
+    out = []
+    for a in range(0, cell.seeds, k):
+        n = min(k, cell.seeds - a)
+        name = f"seed{a}" if n == 1 else f"seeds{a}-{a + n - 1}"
+        out.append(Part(a, n, top / name, name))
+    return out
+
+
+def train_args(cell: Cell, run_dir: Path, part: Part | None = None) -> list[str]:
+    """``train.py`` arguments that train (or resume) the cell (or its ``part``) in ``run_dir``."""
+    seeds = str(part.seeds) if part else str(cell.seeds)
+    args = ["--env", cell.task, "--method", cell.variant.method, "--seeds", seeds]
+    if part and part.first:
+        args += ["--first-seed", str(part.first)]
     args += ["--steps", str(cell.steps), "--run", str(run_dir), "--no-progress"]
     for p in cell.variant.presets:
         args += ["--preset", p]
@@ -236,10 +284,15 @@ def checkpoint_steps(run_dir: Path) -> list[int]:
     return sorted(int(p.name) for p in ckpt.iterdir() if p.name.isdigit())
 
 
-def is_finished(root: Path, cell: Cell) -> bool:
-    """A checkpoint at (or past) the cell's last env step exists."""
-    steps = checkpoint_steps(cell_dir(root, cell))
+def part_finished(part: Part, cell: Cell) -> bool:
+    """A checkpoint at (or past) the cell's last env step exists in the part's directory."""
+    steps = checkpoint_steps(part.dir)
     return bool(steps) and steps[-1] >= cell.steps
+
+
+def is_finished(root: Path, cell: Cell) -> bool:
+    """Every program of the cell holds a checkpoint at (or past) the cell's last env step."""
+    return all(part_finished(p, cell) for p in parts(root, cell))
 
 
 def runs_per_cell(cell: Cell) -> int:
@@ -251,28 +304,53 @@ def runs_per_cell(cell: Cell) -> int:
     return n
 
 
-def recorded_finished(results: Path, cell: Cell) -> bool:
-    """The committed record of the cell holds every run's evaluation at the cell's last env step,
-    and was trained with the config the cell would train with now."""
-    d = Path(results) / cell.task / cell.variant.name
-    cfg_file, metrics = d / "config.yaml", d / "metrics.jsonl"
-    if not (cfg_file.exists() and metrics.exists()):
+def _same_config(cfg_file: Path, cell: Cell) -> bool:
+    """``cfg_file`` (a run's config.yaml) is the config the cell trains with now; keys inert for
+    the run do not count."""
+    if not cfg_file.exists():
         return False
     try:
         saved = config_lib.build(config_lib.complete_saved(yaml.safe_load(cfg_file.read_text())))
-        if config_lib.diff(saved, run_config(cell)):  # keys inert for the run do not count
-            return False
+        return not config_lib.diff(saved, run_config(cell))
     except (yaml.YAMLError, config_lib.ConfigError, AttributeError, TypeError):
         return False
-    final = 0
-    for line in metrics.read_text().splitlines():
+
+
+def _read_rows(path: Path) -> list[dict]:
+    """A metrics file's whole rows (a torn or bad line is left out: a record is read, not
+    repaired, here)."""
+    rows = []
+    for line in path.read_text().splitlines() if path.exists() else []:
         try:
-            row = json.loads(line)
+            rows.append(json.loads(line))
         except json.JSONDecodeError:
             continue
-        if row.get("kind") == "eval" and row.get("step", -1) >= cell.steps:
-            final += 1
-    return final >= runs_per_cell(cell)
+    return rows
+
+
+def _seed_of(labels_file: Path, rows: list[dict]) -> list[int]:
+    """Run index -> seed, from ``seeds.json`` (the index itself without one)."""
+    try:
+        labels = json.loads(labels_file.read_text()) if labels_file.exists() else []
+    except (OSError, json.JSONDecodeError):
+        labels = []
+    n = max([len(labels)] + [r.get("seed", -1) + 1 for r in rows])
+    return [int(labels[i].get("seed", i)) if i < len(labels) else i for i in range(n)]
+
+
+def recorded_finished(results: Path, cell: Cell, seeds: list[int] | None = None) -> bool:
+    """The committed record of the cell holds the evaluation at the cell's last env step of every
+    run (or of the seeds ``seeds``: one program of a cell trained in parts), and was trained
+    with the config the cell would train with now."""
+    d = Path(results) / cell.task / cell.variant.name
+    if not _same_config(d / "config.yaml", cell):
+        return False
+    rows = _read_rows(d / "metrics.jsonl")
+    final = {r["seed"] for r in rows if r.get("kind") == "eval" and r.get("step", -1) >= cell.steps}
+    if seeds is None:
+        return len(final) >= runs_per_cell(cell)
+    seed_of = _seed_of(d / "seeds.json", rows)
+    return set(seeds) <= {seed_of[i] for i in final}
 
 
 def status(root: Path, cfg: StudyConfig, results: Path | None = None) -> dict[str, str]:
@@ -280,15 +358,27 @@ def status(root: Path, cfg: StudyConfig, results: Path | None = None) -> dict[st
     steps)`` or ``not started``."""
     out = {}
     for cell in cells(cfg):
-        steps = checkpoint_steps(cell_dir(root, cell))
-        if steps and steps[-1] >= cell.steps:
+        if is_finished(root, cell):
             out[cell.key] = "finished"
         elif results is not None and recorded_finished(results, cell):
             out[cell.key] = "finished (committed record)"
-        elif steps:
-            out[cell.key] = f"partial ({steps[-1]} env steps)"
+        elif len(parts(root, cell)) == 1:
+            steps = checkpoint_steps(cell_dir(root, cell))
+            out[cell.key] = f"partial ({steps[-1]} env steps)" if steps else "not started"
         else:
-            out[cell.key] = "not started"
+            states = []
+            for p in parts(root, cell):
+                steps = checkpoint_steps(p.dir)
+                if part_finished(p, cell):
+                    states.append(f"{p.name} finished")
+                elif results is not None and recorded_finished(results, cell, p.labels):
+                    states.append(f"{p.name} finished (committed record)")
+                else:
+                    states.append(
+                        f"{p.name} " + (f"{steps[-1]} env steps" if steps else "not started")
+                    )
+            started = [x for x in states if not x.endswith("not started")]
+            out[cell.key] = "partial (" + ", ".join(states) + ")" if started else "not started"
     return out
 
 
@@ -300,8 +390,10 @@ REPORT_ONLY = ("description", "notes", "anchors")
 def _training(pinned: dict) -> dict:
     """A study config less what only the report reads (:data:`REPORT_ONLY`, variant labels)."""
     out = {k: v for k, v in pinned.items() if k not in REPORT_ONLY}
+    # how a cell's seeds group into programs does not change what they train
     out["variants"] = [
-        {k: v for k, v in var.items() if k != "label"} for var in pinned.get("variants", [])
+        {k: v for k, v in var.items() if k not in ("label", "seeds_per_program")}
+        for var in pinned.get("variants", [])
     ]
     return out
 
@@ -361,13 +453,68 @@ def pin_config(root: Path, cfg: StudyConfig) -> list[str]:
 
 
 def collect(root: Path, cell: Cell, results: Path) -> Path | None:
-    """Copy the cell's small files to ``results/<task>/<variant>/``; None if it has none yet."""
-    src = cell_dir(root, cell)
-    files = [src / f for f in SMALL_FILES if (src / f).exists()]
-    if not files:
-        return None
+    """Copy the cell's small files to ``results/<task>/<variant>/``; None if it has none yet. A
+    cell trained in parts merges into the record: each part's seeds replace their rows there, and
+    the seeds recorded earlier (by a part trained on another machine) are kept."""
     dst = Path(results) / cell.task / cell.variant.name
+    ps = parts(root, cell)
+    if len(ps) == 1:
+        src = ps[0].dir
+        files = [src / f for f in SMALL_FILES if (src / f).exists()]
+        if not files:
+            return None
+        dst.mkdir(parents=True, exist_ok=True)
+        for f in files:
+            shutil.copy2(f, dst / f.name)
+        return dst
+    present = [p for p in ps if (p.dir / "metrics.jsonl").exists()]
+    if not present:
+        return None
+    rows: dict[int, list[dict]] = {}  # seed -> its rows
+    hosts: list[dict] = []
+    if _same_config(dst / "config.yaml", cell):  # what the record holds of other parts
+        old = _read_rows(dst / "metrics.jsonl")
+        seed_of = _seed_of(dst / "seeds.json", old)
+        for r in old:
+            rows.setdefault(seed_of[r["seed"]], []).append(r)
+        for h in _read_json(dst / "host.json"):
+            hosts.append({**h, "seeds": h.get("seeds", sorted(rows))})
+    for p in present:
+        mine = _read_rows(p.dir / "metrics.jsonl")
+        seed_of = _seed_of(p.dir / "seeds.json", mine)
+        for s in p.labels:
+            rows.pop(s, None)
+        for r in mine:
+            rows.setdefault(seed_of[r["seed"]], []).append(r)
+        hosts = [
+            {**h, "seeds": [s for s in h["seeds"] if s not in p.labels]}
+            for h in hosts
+            if set(h["seeds"]) - set(p.labels)
+        ]
+        hosts += [{**h, "seeds": p.labels} for h in _read_json(p.dir / "host.json")]
+    order = sorted(rows)
+    index = {s: i for i, s in enumerate(order)}
+    merged = [{**r, "seed": index[s]} for s in order for r in rows[s]]
+    merged.sort(key=lambda r: (r["step"], r["kind"] != "train", r["seed"]))
     dst.mkdir(parents=True, exist_ok=True)
-    for f in files:
-        shutil.copy2(f, dst / f.name)
+    for p in present:
+        if (p.dir / "config.yaml").exists():
+            shutil.copy2(p.dir / "config.yaml", dst / "config.yaml")
+            break
+    _write(dst / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in merged))
+    _write(dst / "seeds.json", json.dumps([{"seed": s} for s in order], indent=1))
+    _write(dst / "host.json", json.dumps(hosts, indent=1))
     return dst
+
+
+def _read_json(path: Path) -> list:
+    try:
+        return json.loads(path.read_text()) if path.exists() else []
+    except (OSError, json.JSONDecodeError):
+        return []
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)

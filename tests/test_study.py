@@ -154,15 +154,30 @@ def test_smoke_study_runs_resumes_without_retraining_and_reports(tmp_path):
     assert not (tmp_path / "runs" / "reacher_easy" / "dreamer").exists()
     metrics1 = (cell1 / "metrics.jsonl").read_text()
 
-    # Re-run: the finished cell is skipped, the other trains, the report is written.
+    # Re-run: the finished cell is skipped, the other trains, the report is written. Dreamer's
+    # cell trains its two seeds as two programs (seeds_per_program: 1), each keyed as seed 0 and
+    # seed 1 of one vmapped run, and its record merges them.
     second = _study(["run"], tmp_path)
     assert second.returncode == 0, second.stdout + second.stderr
     assert "reacher_easy/collodreamer: finished, skipped" in second.stdout
     assert (cell1 / "metrics.jsonl").read_text() == metrics1  # not retrained
-    assert study.checkpoint_steps(tmp_path / "runs" / "reacher_easy" / "dreamer")[-1] == 800
+    dreamer = tmp_path / "runs" / "reacher_easy" / "dreamer"
+    for part, seed in (("seed0", 0), ("seed1", 1)):
+        assert study.checkpoint_steps(dreamer / part)[-1] == 800
+        assert json.loads((dreamer / part / "seeds.json").read_text()) == [{"seed": seed}]
+    assert "--first-seed 1" in (dreamer / "seed1" / "train.log").read_text()
     for variant in ("collodreamer", "dreamer"):
         small = tmp_path / "results" / "reacher_easy" / variant
         assert {p.name for p in small.iterdir()} >= {"config.yaml", "metrics.jsonl", "host.json"}
+    record = tmp_path / "results" / "reacher_easy" / "dreamer"
+    assert json.loads((record / "seeds.json").read_text()) == [{"seed": 0}, {"seed": 1}]
+    assert [h["seeds"] for h in json.loads((record / "host.json").read_text())] == [[0], [1]]
+    finals = [
+        r
+        for r in map(json.loads, (record / "metrics.jsonl").read_text().splitlines())
+        if r["kind"] == "eval" and r["step"] == 800
+    ]
+    assert sorted(r["seed"] for r in finals) == [0, 1]
 
     md = (tmp_path / "report" / "smoke.md").read_text()
     assert "(partial)" not in md
@@ -185,6 +200,40 @@ def test_smoke_study_runs_resumes_without_retraining_and_reports(tmp_path):
     assert fourth.returncode == 0, fourth.stdout + fourth.stderr
     assert fourth.stdout.count("finished in the committed record") == 2
     assert not (tmp_path / "runs" / "reacher_easy").exists()
+
+    # Only seed 0 of dreamer's cell in the record (seed 1's part was lost with its machine before
+    # it finished): the study trains seed 1's program alone, and the record keeps seed 0.
+    rows = [json.loads(x) for x in (record / "metrics.jsonl").read_text().splitlines()]
+    seed0 = [r for r in rows if r["seed"] == 0]
+    (record / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in seed0))
+    (record / "seeds.json").write_text(json.dumps([{"seed": 0}]))
+    hosts = json.loads((record / "host.json").read_text())
+    (record / "host.json").write_text(json.dumps(hosts[:1]))
+    status = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "study.py"),
+            "status",
+            str(SMOKE),
+            "--root",
+            str(tmp_path / "runs"),
+            "--results",
+            str(tmp_path / "results"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert "seed0 finished (committed record), seed1 not started" in status.stdout, status.stdout
+    fifth = _study(["run", "--no-report"], tmp_path)
+    assert fifth.returncode == 0, fifth.stdout + fifth.stderr
+    assert "reacher_easy/dreamer seed0: finished in the committed record, skipped" in fifth.stdout
+    assert "reacher_easy/dreamer seed1 (seed 1 of 2): training" in fifth.stdout
+    assert not (tmp_path / "runs" / "reacher_easy" / "dreamer" / "seed0").exists()
+    merged = [json.loads(x) for x in (record / "metrics.jsonl").read_text().splitlines()]
+    assert [r for r in merged if r["seed"] == 0] == seed0  # kept as recorded
+    assert {r["seed"] for r in merged if r["kind"] == "eval" and r["step"] == 800} == {0, 1}
 
 
 def test_a_committed_record_counts_as_finished_only_when_whole_and_of_the_same_config(tmp_path):

@@ -89,3 +89,19 @@ def test_tied_keys_take_their_values_together():
         config.parse_sweep("value.gamma+planner.gamma=0.9 value.gamma=0.95", cfg)
     with pytest.raises(config.ConfigError, match="cannot sweep 'planner.horizon'"):
         config.parse_sweep("value.gamma+planner.horizon=0.9", cfg)
+
+
+def test_seeds_trained_alone_have_the_keys_of_one_vmapped_run():
+    """``train.py --seeds 1 --first-seed 2`` trains seed 2 of ``--seeds 3``: the same key and
+    label, so a study can train a cell's seeds one program at a time; evaluation and the probe
+    find the key again from the labels. A sweep's seeds train together."""
+    cfg = config.load(task="reacher_easy", presets=["debug"])
+    together = parallel.seed_keys(cfg, 3)
+    alone = parallel.seed_keys(cfg, 1, first=2)
+    assert (alone[0] == together[2]).all() and not (alone[0] == together[0]).all()
+    n, _, labels = parallel.sweep_grid({}, 2, first=1)
+    assert n == 2 and labels == [{"seed": 1}, {"seed": 2}]
+    assert parallel.first_seed(labels) == 1
+    assert parallel.first_seed([{"seed": 0, "value.gamma": 0.9}]) == 0
+    with pytest.raises(config.ConfigError, match="--first-seed"):
+        parallel.sweep_grid({"value.gamma": [0.9, 0.99]}, 1, first=1)
