@@ -142,6 +142,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"stopping after {trained} cell(s) (--max-cells)")
             break
         parts = study.parts(root, cell)
+        if len(parts) > 1 and study.checkpoint_steps(study.cell_dir(root, cell)):
+            print(
+                f"[{i}/{len(cells)}] {cell.key}: trains in parts now (seeds_per_program); the "
+                f"whole-cell checkpoints in {study.cell_dir(root, cell) / 'checkpoints'} are "
+                "not resumed"
+            )
+        did_train = False
         for part in parts:
             where = f"{cell.key} {part.name}" if part.name else cell.key
             if len(parts) > 1:
@@ -156,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
                 where += f" ({seeds} of {cell.seeds})"
             print(f"[{i}/{len(cells)}] {where}: training {cell.steps} env steps -> {part.dir}")
             code = train_cell(cell, part.dir, stop, part)
+            did_train = True
             study.collect(root, cell, results)
             if stop.signum is not None:
                 print(f"study {name} interrupted in {where}; the same command resumes it")
@@ -163,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
             if code != 0 or not study.part_finished(part, cell):
                 failed.append(f"{where} (exit {code}, log {part.dir / 'train.log'})")
                 break
-        trained += 1
+        study.collect(root, cell, results)  # parts finished here but not yet in the record
+        trained += did_train
     if not args.no_report:
         print(f"wrote {report.write(name, cfg, results, out)}")
     if failed:

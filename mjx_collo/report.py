@@ -367,8 +367,11 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
         series = load_cell(Path(results) / cell.task / cell.variant.name, cell.variant)
         data.setdefault(cell.task, []).extend(series)
         reached = max((s.env_steps for s in series), default=0)
+        runs = sum(s.runs for s in series if not s.prior_alone)
         if reached < cell.steps:
             missing.append(f"{cell.key}: {_k(reached)} of {_k(cell.steps)} env steps")
+        elif runs < study_lib.runs_per_cell(cell):  # a cell trained in parts, some not yet
+            missing.append(f"{cell.key}: {runs} of {study_lib.runs_per_cell(cell)} runs")
         for s in series:
             if s.env_steps and not s.prior_alone:
                 cost_rows.append(

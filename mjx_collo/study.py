@@ -455,7 +455,8 @@ def pin_config(root: Path, cfg: StudyConfig) -> list[str]:
 def collect(root: Path, cell: Cell, results: Path) -> Path | None:
     """Copy the cell's small files to ``results/<task>/<variant>/``; None if it has none yet. A
     cell trained in parts merges into the record: each part's seeds replace their rows there, and
-    the seeds recorded earlier (by a part trained on another machine) are kept."""
+    the seeds recorded earlier (by a part trained on another machine) are kept, and so are a
+    part's recorded rows when its run directory here is behind them."""
     dst = Path(results) / cell.task / cell.variant.name
     ps = parts(root, cell)
     if len(ps) == 1:
@@ -482,6 +483,9 @@ def collect(root: Path, cell: Cell, results: Path) -> Path | None:
     for p in present:
         mine = _read_rows(p.dir / "metrics.jsonl")
         seed_of = _seed_of(p.dir / "seeds.json", mine)
+        recorded = max((r["step"] for s in p.labels for r in rows.get(s, [])), default=-1)
+        if not part_finished(p, cell) and max((r["step"] for r in mine), default=-1) < recorded:
+            continue  # a copy left behind on this machine: the record is further along
         for s in p.labels:
             rows.pop(s, None)
         for r in mine:

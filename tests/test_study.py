@@ -171,6 +171,16 @@ def test_smoke_study_runs_resumes_without_retraining_and_reports(tmp_path):
         assert {p.name for p in small.iterdir()} >= {"config.yaml", "metrics.jsonl", "host.json"}
     record = tmp_path / "results" / "reacher_easy" / "dreamer"
     assert json.loads((record / "seeds.json").read_text()) == [{"seed": 0}, {"seed": 1}]
+    # each part trained its own seed's key (one key for both would give equal losses)
+    losses = [
+        [
+            r["wm/loss/total"]
+            for r in map(json.loads, (dreamer / part / "metrics.jsonl").read_text().splitlines())
+            if r["kind"] == "train"
+        ]
+        for part in ("seed0", "seed1")
+    ]
+    assert losses[0] and losses[0] != losses[1]
     assert [h["seeds"] for h in json.loads((record / "host.json").read_text())] == [[0], [1]]
     finals = [
         r
@@ -420,3 +430,61 @@ def test_a_study_with_sections_reports_each_with_its_variants(tmp_path):
                 )
             )
         )
+
+
+def _fake_part(part: Path, cell, seed: int, last: int, value: float) -> None:
+    """A part's run directory as train.py leaves it: rows to ``last`` env steps, a checkpoint
+    there (only its step is read here)."""
+    from mjx_collo import config as config_lib
+
+    part.mkdir(parents=True)
+    config_lib.dump_yaml(study.run_config(cell), part / "config.yaml")
+    rows = [
+        {"step": step, "seed": 0, "kind": kind, "eval/return": value, "perf/wall_s": step / 10}
+        for step in range(400, last + 1, 400)
+        for kind in ("train", "eval")
+    ]
+    (part / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    (part / "seeds.json").write_text(json.dumps([{"seed": seed}]))
+    (part / "host.json").write_text(json.dumps([{"platform": "cpu"}]))
+    (part / "checkpoints" / str(last)).mkdir(parents=True)
+
+
+def test_a_cell_in_parts_merges_into_its_record_and_never_goes_back(tmp_path):
+    """The smoke study's dreamer cell trains one seed per program. Its record merges the parts,
+    keeps a part's recorded rows when this machine's copy of it is behind them, a part that
+    finished here but missed the record is collected by the next study run (which trains
+    nothing), and a record short of seeds is reported partial."""
+    _, cfg = study.load(str(SMOKE))
+    cell = next(c for c in study.cells(cfg) if c.variant.name == "dreamer")
+    root, results = tmp_path / "runs", tmp_path / "results"
+    top = study.cell_dir(root, cell)
+    _fake_part(top / "seed0", cell, 0, 800, 10.0)
+    _fake_part(top / "seed1", cell, 1, 400, 20.0)
+    rec = study.collect(root, cell, results)
+    assert json.loads((rec / "seeds.json").read_text()) == [{"seed": 0}, {"seed": 1}]
+    assert study.recorded_finished(results, cell, [0])
+    assert not study.recorded_finished(results, cell, [1])
+    assert not study.recorded_finished(results, cell)
+    hosts = json.loads((rec / "host.json").read_text())
+    assert [h["seeds"] for h in hosts] == [[0], [1]]
+
+    # seed 1 finished on another machine (the record), this machine's seed1 stopped at 400
+    rows = [json.loads(x) for x in (rec / "metrics.jsonl").read_text().splitlines()]
+    rows += [{"step": 800, "seed": 1, "kind": k, "eval/return": 30.0} for k in ("train", "eval")]
+    (rec / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    study.collect(root, cell, results)
+    assert study.recorded_finished(results, cell)  # not overwritten by the copy behind it
+
+    # seed 0 finished here but its rows never reached the record (killed before collecting)
+    kept = [r for r in rows if r["seed"] == 1]
+    (rec / "metrics.jsonl").write_text("".join(json.dumps({**r, "seed": 0}) + "\n" for r in kept))
+    (rec / "seeds.json").write_text(json.dumps([{"seed": 1}]))
+    out = report.write("smoke", cfg, results, tmp_path / "smoke.md").read_text()
+    assert "- reacher_easy/dreamer: 1 of 2 runs" in out and "(partial)" in out
+    run = _study(["run", "--no-report", "--only", "dreamer"], tmp_path)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "dreamer seed0: finished, skipped" in run.stdout
+    assert "dreamer seed1: finished in the committed record, skipped" in run.stdout
+    assert study.recorded_finished(results, cell)
+    assert json.loads((rec / "seeds.json").read_text()) == [{"seed": 0}, {"seed": 1}]

@@ -102,6 +102,6 @@ def test_seeds_trained_alone_have_the_keys_of_one_vmapped_run():
     n, _, labels = parallel.sweep_grid({}, 2, first=1)
     assert n == 2 and labels == [{"seed": 1}, {"seed": 2}]
     assert parallel.first_seed(labels) == 1
-    assert parallel.first_seed([{"seed": 0, "value.gamma": 0.9}]) == 0
+    assert parallel.first_seed([{"seed": 1, "value.gamma": 0.9}]) == 0  # a sweep: run index
     with pytest.raises(config.ConfigError, match="--first-seed"):
         parallel.sweep_grid({"value.gamma": [0.9, 0.99]}, 1, first=1)
