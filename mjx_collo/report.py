@@ -12,6 +12,7 @@ finished study reports what exists and marks what is missing.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import warnings
@@ -153,6 +154,23 @@ def _k(steps: int) -> str:
     return f"{steps / 1000:g}k" if steps >= 1000 else str(steps)
 
 
+@contextlib.contextmanager
+def _seeded():
+    """Reproducible bootstraps: rliable's StratifiedBootstrap draws its resamples from NumPy's
+    global RNG (``update_indices`` calls ``np.random.choice``) whatever ``random_state`` it is
+    given, so without this a report's CIs changed each time it was written. The caller's global
+    RNG state is restored; arch's "random_state is deprecated" warning (rliable passes it) is
+    hidden."""
+    state = np.random.get_state()
+    np.random.seed(0)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            yield
+    finally:
+        np.random.set_state(state)
+
+
 def _ci(scores: np.ndarray) -> tuple[float, float, float]:
     """Mean over seeds and its 95% percentile-bootstrap CI (rliable)."""
     from rliable import library as rly
@@ -161,8 +179,7 @@ def _ci(scores: np.ndarray) -> tuple[float, float, float]:
     if x.shape[0] < 2:
         m = float(x.mean())
         return m, float("nan"), float("nan")
-    with warnings.catch_warnings():  # arch: "random_state is deprecated" (rliable passes it)
-        warnings.simplefilter("ignore", FutureWarning)
+    with _seeded():
         point, ci = rly.get_interval_estimates(
             {"v": x},
             lambda s: np.array([np.mean(s)]),
@@ -236,8 +253,7 @@ def _aggregate(cfg: StudyConfig, data: dict, budget: int, out_dir: Path) -> list
     lines = [f"### Aggregate over tasks at {_k(budget)} env steps", ""]
     if not scores:
         return lines + ["No variant has finished every task at this budget yet.", ""]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)
+    with _seeded():
         point, ci = rly.get_interval_estimates(
             scores,
             lambda x: np.array([metrics.aggregate_iqm(x)]),
@@ -250,7 +266,8 @@ def _aggregate(cfg: StudyConfig, data: dict, budget: int, out_dir: Path) -> list
         r, t = scores[label].shape
         lines.append(f"| {label} | {point[label][0]:.3f} | [{lo:.3f}, {hi:.3f}] | {r} x {t} |")
     taus = np.linspace(0.0, 1.0, 101)
-    profiles, profile_cis = rly.create_performance_profile(scores, taus, reps=REPS)
+    with _seeded():
+        profiles, profile_cis = rly.create_performance_profile(scores, taus, reps=REPS)
     import matplotlib
 
     matplotlib.use("Agg")

@@ -488,3 +488,18 @@ def test_a_cell_in_parts_merges_into_its_record_and_never_goes_back(tmp_path):
     assert "dreamer seed1: finished in the committed record, skipped" in run.stdout
     assert study.recorded_finished(results, cell)
     assert json.loads((rec / "seeds.json").read_text()) == [{"seed": 0}, {"seed": 1}]
+
+
+def test_report_confidence_intervals_are_the_same_each_time_it_is_written():
+    """rliable's bootstrap resamples with NumPy's global RNG whatever random_state it is given;
+    the report seeds it, so regenerating a committed report changes no number (it did), and
+    leaves the caller's RNG where it was."""
+    scores = np.array([120.0, 310.0, 200.0, 95.0, 400.0])
+    np.random.seed(123)
+    before = np.random.get_state()[1].copy()
+    first = report._ci(scores)
+    np.random.random(1000)  # another use of the global RNG between two reports
+    assert report._ci(scores) == first
+    np.random.seed(123)
+    report._ci(scores)
+    assert (np.random.get_state()[1] == before).all()
