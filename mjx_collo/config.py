@@ -149,6 +149,7 @@ class ShootingConfig(Section):
     max_std: float
     warm_start: bool
     color: Annotated[float, Field(ge=0.0)]
+    color_frac: Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class InitCEMConfig(Section):
@@ -157,6 +158,7 @@ class InitCEMConfig(Section):
     iters: int
     std: float
     color: Annotated[float, Field(ge=0.0)]
+    color_frac: Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class PlannerConfig(Section):
@@ -376,6 +378,8 @@ ADDED_KEYS: dict[str, Any] = {
     "planner.init_cem.color": 0.0,
     "planner.shooting.color": 0.0,
     "explore.color": 0.0,
+    "planner.init_cem.color_frac": 1.0,
+    "planner.shooting.color_frac": 1.0,
 }
 
 
@@ -544,8 +548,9 @@ def uses_prior(cfg: Config) -> bool:
 
 
 # Float keys a one-compile sweep cannot vary: they decide the program's shapes or state.
-# explore.color > 0 keeps each env's noise sequence for the episode in the acting state.
-STATIC_FLOATS = {"explore.color"}
+# explore.color > 0 keeps each env's noise sequence for the episode in the acting state; a
+# planner's color_frac splits its samples into a white and a colored block of fixed sizes.
+STATIC_FLOATS = {"explore.color", "planner.init_cem.color_frac", "planner.shooting.color_frac"}
 
 
 def float_keys(cfg: Config) -> list[str]:

@@ -116,7 +116,8 @@ def test_correlated_samples_find_a_long_push_that_white_samples_miss(method):
     z = 1, which takes 10 steps of full push. 30 white samples per CEM iteration (z after 20 steps
     has std ~0.4) almost never get there; red samples (color 2, iCEM) usually do in the first
     iteration, and CEM then holds the push. The CEM method (planner.shooting.color) and
-    ColloDreamer's CEM start (planner.init_cem.color; no collocation steps here) alike."""
+    ColloDreamer's CEM start (planner.init_cem.color; no collocation steps here) alike; half the
+    samples red (color_frac 0.5) find it too."""
     model = LatentModel(
         start=lambda p, c, a: c + 0.1 * a,
         step=lambda p, z, a: z + 0.1 * a,
@@ -124,13 +125,13 @@ def test_correlated_samples_find_a_long_push_that_white_samples_miss(method):
         value=lambda p, z: jnp.zeros(()),
     )
     found = {}
-    for color in (0.0, 2.0):
+    for color, frac in ((0.0, 1.0), (2.0, 1.0), (2.0, 0.5)):
         if method == "cem":
             over = ["shooting.samples=30", "shooting.elites=3", "shooting.iters=3"]
-            over += [f"shooting.color={color}"]
+            over += [f"shooting.color={color}", f"shooting.color_frac={frac}"]
         else:  # the collocation planner's CEM start alone
             over = ["init=cem", "iters=0", "init_cem.samples=30", "init_cem.elites=3"]
-            over += ["init_cem.iters=3", f"init_cem.color={color}"]
+            over += ["init_cem.iters=3", f"init_cem.color={color}", f"init_cem.color_frac={frac}"]
         cfg = config.load(
             method=method, overrides=["planner.horizon=20"] + [f"planner.{o}" for o in over]
         )
@@ -141,5 +142,28 @@ def test_correlated_samples_find_a_long_push_that_white_samples_miss(method):
             return planner.optimize(None, ctx, planner.init(None, ctx, key), key)[1]
 
         m = jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(3), 16))
-        found[color] = int(np.sum(np.asarray(m["plan_return"]) > 0))
-    assert found[0.0] <= 4 and found[2.0] >= 12, found
+        found[color, frac] = int(np.sum(np.asarray(m["plan_return"]) > 0))
+    assert found[0.0, 1.0] <= 4 and found[2.0, 1.0] >= 12 and found[2.0, 0.5] >= 7, found
+
+
+def test_a_mixed_population_draws_a_white_block_and_a_colored_block():
+    """color_frac 0.25 of 40 samples: the first 30 white (no correlation between steps), the last
+    10 red (strong correlation); color_frac 1 draws exactly the all-colored noise of before."""
+    from mjx_collo.noise import colored_normal
+    from mjx_collo.planners.shooting import _sample_noise
+
+    cfg = config.load(method="cem", overrides=["planner.shooting.samples=40"])
+    sc = cfg.planner.shooting.model_copy(update={"color": 2.0, "color_frac": 0.25})
+    key = jax.random.PRNGKey(5)
+    x = np.asarray(jax.vmap(lambda k: _sample_noise(sc, k, (16, 3)))(jax.random.split(key, 200)))
+    assert x.shape == (200, 40, 16, 3)
+
+    def lag1(block):
+        return np.corrcoef(block[:, :, :-1].ravel(), block[:, :, 1:].ravel())[0, 1]
+
+    assert abs(lag1(x[:, :30])) < 0.03 and lag1(x[:, 30:]) > 0.6
+    every = sc.model_copy(update={"color_frac": 1.0})
+    np.testing.assert_array_equal(
+        np.asarray(_sample_noise(every, key, (16, 3))),
+        np.asarray(colored_normal(key, (40, 16, 3), 2.0)),
+    )

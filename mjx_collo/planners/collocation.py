@@ -89,6 +89,7 @@ def cem_actions(
         max_std=2.0,  # the CEM method's clamp
         warm_start=False,
         color=ic.color,
+        color_frac=ic.color_frac,
     )
     sub = cfg.model_copy(
         update={"planner": cfg.planner.model_copy(update={"kind": "cem", "shooting": shoot})}

@@ -11,6 +11,8 @@ to [-1, 1], rolls them out deterministically through the model and scores them b
 
 ``shooting.color`` > 0 draws the samples' noise correlated over the horizon (power spectrum
 ~ 1/f^color, :mod:`mjx_collo.noise`; iCEM); 0, the default, is white noise, drawn exactly as before.
+``shooting.color_frac`` < 1 draws only that share of the samples colored and the rest white, so the
+population holds both long pushes and step-by-step corrections and the elites pick between them.
 """
 
 from __future__ import annotations
@@ -70,6 +72,23 @@ def _update(cfg: Config, samples: jax.Array, score: jax.Array) -> ShootState:
     return ShootState(mean=mean, std=jnp.clip(std, sc.min_std, sc.max_std))
 
 
+def _sample_noise(sc, key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Standard-normal noise [samples, H, A]: white, colored (``color`` > 0), or the first
+    ``round(samples * (1 - color_frac))`` white and the rest colored."""
+    full = (sc.samples,) + tuple(shape)
+    if isinstance(sc.color, float | int) and sc.color == 0:
+        return jax.random.normal(key, full)
+    colored = int(round(sc.samples * sc.color_frac))
+    if colored >= sc.samples:
+        return noise.colored_normal(key, full, sc.color)
+    k_white, k_col = jax.random.split(key)
+    white = jax.random.normal(k_white, (sc.samples - colored,) + tuple(shape))
+    if colored == 0:
+        return white
+    red = noise.colored_normal(k_col, (colored,) + tuple(shape), sc.color)
+    return jnp.concatenate([white, red], axis=0)
+
+
 def optimize_shoot(
     cfg: Config, prob: Problem, state: ShootState, key: jax.Array, unroll: bool = False
 ) -> tuple[ShootState, dict[str, jax.Array]]:
@@ -81,12 +100,7 @@ def optimize_shoot(
     score_fn = jax.vmap(lambda acts: sequence_return(prob, acts))
 
     def body(k, st: ShootState) -> ShootState:
-        k_eps = jax.random.fold_in(key, k)
-        eps = (
-            jax.random.normal(k_eps, (sc.samples,) + st.mean.shape)
-            if isinstance(sc.color, float | int) and sc.color == 0
-            else noise.colored_normal(k_eps, (sc.samples,) + st.mean.shape, sc.color)
-        )
+        eps = _sample_noise(sc, jax.random.fold_in(key, k), st.mean.shape)
         samples = jnp.clip(st.mean + st.std * eps, -1.0, 1.0)
         score = score_fn(samples)
         score = jnp.where(jnp.isfinite(score), score, -jnp.inf)
