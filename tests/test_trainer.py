@@ -239,6 +239,25 @@ def test_bad_sweep_fails_with_one_line(tmp_path):
     assert "wm.deter" in err and "float" in err
 
 
+def test_first_seed_with_a_sweep_fails_with_one_line(tmp_path):
+    err = _main_error(
+        ["--env", "reacher", "--run", str(tmp_path), "--first-seed", "2"]
+        + ["--sweep", "value.gamma=0.9,0.99"]
+    )
+    assert "--first-seed 2" in err and "sweep" in err
+
+
+def test_other_seeds_on_a_run_directory_fail_with_one_line(runs):
+    """Seeds 1-2 asked of a run directory that holds seeds 0-1 (a study part resumed with
+    another --first-seed): refused before compiling, naming both."""
+    _, (res_a, _), _ = runs
+    err = _main_error(
+        ["--env", TASK, "--preset", "debug", "--seeds", "2", "--first-seed", "1"]
+        + ["--run", str(res_a.run_dir)]
+    )
+    assert "{'seed': 0}, {'seed': 1}" in err and "{'seed': 1}, {'seed': 2}" in err
+
+
 def test_checkpoint_from_another_config_fails_with_one_line(runs):
     _, (res_a, _), _ = runs
     err = _main_error(
