@@ -96,11 +96,9 @@ def main(argv: list[str] | None = None) -> int:
         sweep = config.parse_sweep(args.sweep, cfg) if args.sweep else {}
         if args.seeds < 1:
             raise config.ConfigError(f"--seeds must be >= 1, got {args.seeds}")
-        if args.first_seed < 0 or (args.first_seed and sweep):
-            raise config.ConfigError(
-                f"--first-seed {args.first_seed}: give a seed index >= 0, and no --sweep (a "
-                "sweep's seeds train together)"
-            )
+        from mjx_collo import parallel
+
+        parallel.check_first_seed(args.first_seed, sweep)
     except (envs.UnknownTaskError, config.ConfigError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

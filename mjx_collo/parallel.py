@@ -33,6 +33,16 @@ def first_seed(labels: list[dict]) -> int:
     return int(labels[0].get("seed", 0))
 
 
+def check_first_seed(first: int, sweep: dict | str | None) -> None:
+    """ConfigError unless ``first`` is a seed index >= 0 of a run without a sweep (a sweep's runs
+    are keyed by their place in the grid, so its seeds train together)."""
+    if first < 0 or (first and sweep):
+        raise ConfigError(
+            f"--first-seed {first}: give a seed index >= 0, and no --sweep (a sweep's runs are "
+            "keyed by their place in the grid, so its seeds train together)"
+        )
+
+
 def sweep_grid(
     sweep: dict[str, list[float]], seeds: int, first: int = 0
 ) -> tuple[int, dict[str, jax.Array], list[dict[str, float]]]:
@@ -40,13 +50,7 @@ def sweep_grid(
 
     A key ``a+b`` (``config.parse_sweep``) is one axis whose values both keys take together.
     ``first``: the seeds are ``first .. first + seeds - 1`` (not with a sweep)."""
-    if first and sweep:
-        raise ConfigError(
-            "--first-seed trains a slice of one seed axis; a --sweep's runs are keyed by their "
-            "place in the grid, so train a sweep's seeds together (drop --first-seed)"
-        )
-    if first < 0:
-        raise ConfigError(f"--first-seed must be >= 0, got {first}")
+    check_first_seed(first, sweep)
     combos: list[dict[str, float]] = [{}]
     for k in sorted(sweep):
         combos = [{**c, **dict.fromkeys(k.split("+"), v)} for c in combos for v in sweep[k]]
