@@ -14,6 +14,7 @@ from flax import struct
 
 from mjx_collo import actor as actor_lib
 from mjx_collo import config as config_lib
+from mjx_collo import explorer as explorer_lib
 from mjx_collo import planner as planner_lib
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm_lib
@@ -51,12 +52,15 @@ def carry_noise(carry: AgentCarry) -> jax.Array | None:
 
 class Agent(NamedTuple):
     """How a seed acts: its config (swept values applied), the world model as the planner's
-    latent model, and the planner (both None for the Dreamer actor, which acts from its actor)."""
+    latent model, and the planner (both None for the Dreamer actor, which acts from its actor).
+    ``explore_planner``: the same planner on the model whose reward adds the disagreement bonus
+    (``explore.disag.heads`` > 0), which makes the training plans; None without one."""
 
     cfg: Config
     action_dim: int
     model: LatentModel | None
     planner: planner_lib.Planner | None
+    explore_planner: planner_lib.Planner | None = None
 
     @property
     def uses_actor(self) -> bool:
@@ -102,7 +106,13 @@ def make_agent(cfg: Config, action_dim: int) -> Agent:
             return actor_lib.mode(cfg.actor, ap, f, action_dim)
 
     model = wm_lib.latent_model(cfg.wm, cfg.planner.space, value, policy)
-    return Agent(cfg, action_dim, model, planner_lib.make_planner(cfg, model, action_dim))
+    planner = planner_lib.make_planner(cfg, model, action_dim)
+    explore_planner = None
+    if cfg.explore.disag.heads:
+        dc = cfg.explore.disag
+        curious = explorer_lib.exploring_model(model, dc, dc.scale)
+        explore_planner = planner_lib.make_planner(cfg, curious, action_dim)
+    return Agent(cfg, action_dim, model, planner, explore_planner)
 
 
 def episode_noise(cfg: Config, num_envs: int, action_dim: int, key: jax.Array) -> jax.Array:
@@ -170,12 +180,17 @@ def _env_mean(metrics: dict[str, jax.Array]) -> dict[str, jax.Array]:
 
 
 def replan(
-    agent: Agent, params: tuple[Any, Any], carry: AgentCarry, key: jax.Array
+    agent: Agent,
+    params: tuple[Any, Any],
+    carry: AgentCarry,
+    key: jax.Array,
+    planner: planner_lib.Planner | None = None,
 ) -> tuple[AgentCarry, dict[str, jax.Array]]:
-    """One planning call per env from its posterior; metrics averaged over envs."""
+    """One planning call per env from its posterior; metrics averaged over envs. ``planner``:
+    another planner of the agent's (its ``explore_planner``, with its params) instead of its own."""
     keys = jax.random.split(key, carry.prev_action.shape[0])
     mpc, metrics = jax.vmap(planner_lib.replan, in_axes=(None, None, 0, 0, 0))(
-        agent.planner, params, carry.post, carry.mpc, keys
+        agent.planner if planner is None else planner, params, carry.post, carry.mpc, keys
     )
     return carry.replace(mpc=mpc), _env_mean(metrics)
 

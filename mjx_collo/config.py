@@ -209,9 +209,18 @@ class ActorConfig(Section):
     optim: OptimConfig
 
 
+class DisagConfig(Section):
+    heads: Annotated[int, Field(ge=0)]
+    layers: Annotated[int, Field(ge=0)]
+    units: Annotated[int, Field(ge=1)]
+    lr: Annotated[float, Field(gt=0.0)]
+    scale: Annotated[float, Field(ge=0.0)]
+
+
 class ExploreConfig(Section):
     noise: Annotated[float, Field(ge=0.0)]
     color: Annotated[float, Field(ge=0.0)]
+    disag: DisagConfig
 
 
 class JLatentConfig(Section):
@@ -380,6 +389,7 @@ ADDED_KEYS: dict[str, Any] = {
     "explore.color": 0.0,
     "planner.init_cem.color_frac": 1.0,
     "planner.shooting.color_frac": 1.0,
+    "explore.disag": {"heads": 0, "layers": 2, "units": 128, "lr": 3.0e-4, "scale": 1.0},
 }
 
 
@@ -465,6 +475,13 @@ def dump_yaml(cfg: Config, path: str | Path) -> None:
 
 
 PRIOR_KEYS = ("actor.pg", "actor.bc", "actor.starts")
+# how the disagreement ensemble trains and weighs: inert without one (explore.disag.heads 0)
+DISAG_KEYS = (
+    "explore.disag.layers",
+    "explore.disag.units",
+    "explore.disag.lr",
+    "explore.disag.scale",
+)
 
 
 def _flat_uses_prior(flat: Mapping[str, Any]) -> bool:
@@ -482,7 +499,32 @@ def inert_keys(flat: Mapping[str, Any]) -> set[str]:
     inert = {"wm.cnn_depth"} if flat.get("env.obs", "state") == "state" else set()
     if not _flat_uses_prior(flat):
         inert |= set(PRIOR_KEYS)
+    if not flat.get("explore.disag.heads", 0):
+        inert |= set(DISAG_KEYS)
     return inert
+
+
+def check_explore(cfg: Config) -> None:
+    """The disagreement bonus's requirements (``explore.disag.heads`` > 0), checked on the config
+    alone: it is a planner's reward term, its ensemble predicts state vectors, and the bonus
+    enters the plans that act, not plans made inside value learning. Raises ConfigError."""
+    if not cfg.explore.disag.heads:
+        return
+    if cfg.planner.kind == "dreamer":
+        raise ConfigError(
+            "explore.disag.heads > 0 adds a curiosity bonus to a planner's reward; "
+            "planner.kind=dreamer acts from its actor (use a planner, or explore.disag.heads=0)"
+        )
+    if cfg.env.obs != "state":
+        raise ConfigError(
+            f"explore.disag.heads > 0 predicts the next state vector; env.obs={cfg.env.obs} "
+            "has none (use env.obs=state, or explore.disag.heads=0)"
+        )
+    if cfg.value.enabled and cfg.value.mode == "plan_inner":
+        raise ConfigError(
+            "explore.disag.heads > 0 with value.mode=plan_inner would train the value on plans "
+            "scored with the curiosity bonus; use value.mode=replay or plan_final"
+        )
 
 
 def check_prior(cfg: Config) -> None:
@@ -557,6 +599,8 @@ def float_keys(cfg: Config) -> list[str]:
     """Dotted paths of every float leaf (the keys a sweep may vary within one compile), less the
     policy prior's objective weights when the run has no prior (they would change nothing)."""
     unused = set() if uses_prior(cfg) else set(PRIOR_KEYS)
+    if not cfg.explore.disag.heads:
+        unused |= set(DISAG_KEYS)
     return sorted(
         k
         for k, v in flatten(to_dict(cfg)).items()

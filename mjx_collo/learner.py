@@ -19,6 +19,7 @@ from flax import struct
 
 from mjx_collo import actor as actor_lib
 from mjx_collo import agent as agent_lib
+from mjx_collo import explorer as explorer_lib
 from mjx_collo import replay as replay_lib
 from mjx_collo import value as value_lib
 from mjx_collo import world_model as wm_lib
@@ -46,6 +47,7 @@ class Learner(NamedTuple):
     """Pure functions of one seed (see :func:`make_learner`)."""
 
     init: Callable[..., tuple[Any, Any, Any, Any, Any]]
+    init_explorer: Callable[[Config, jax.Array], Any]
     update: Callable[[TrainState, jax.Array], tuple[TrainState, Metrics]]
     learn: Callable[[TrainState, jax.Array, jax.Array], tuple[TrainState, Metrics]]
     value_on_plan: ValueOnPlan
@@ -71,6 +73,15 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
         )
         wm_old = wm if c.j_latent.enabled else None
         return wm, wm_lib.init_opt_state(c.wm, wm), vstate, astate, wm_old
+
+    def init_explorer(c: Config, k_wm: jax.Array):
+        """The disagreement ensemble (None without one), its key folded out of the world
+        model's so every other key of a run stays what it was."""
+        if not cfg.explore.disag.heads:
+            return None
+        (obs_dim,) = obs_shape  # config_lib.check_explore: state vectors only
+        key = jax.random.fold_in(k_wm, 0x0E4D)
+        return explorer_lib.init(c.explore.disag, key, feat_dim, obs_dim)
 
     def _update(s: TrainState, key: jax.Array) -> tuple[TrainState, Metrics]:
         """One world-model update (+ value on replay posteriors, or actor-critic)."""
@@ -137,6 +148,20 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
             if not weighted:  # still report how far the planner's actions are from the prior's
                 am["actor/loss_bc"] = actor_lib.bc_loss(c.actor, astate.params, *bc)
             metrics.update(am)
+        explorer = s.explorer
+        if explorer is not None:
+            # the heads learn to predict step t+1's observation from step t's posterior features
+            target = wm_lib.preprocess_obs(c.wm, wm, batch["obs"][:, 1:])
+            feat = post.feat[:, :-1]
+            mask = (~batch["is_first"][:, 1:]).astype(jnp.float32)
+            explorer, em = explorer_lib.train_step(
+                c.explore.disag,
+                explorer,
+                feat.reshape(-1, feat.shape[-1]),
+                target.reshape(-1, target.shape[-1]),
+                mask.reshape(-1),
+            )
+            metrics.update(em)
         bad = wm_m["nonfinite"] > 0
         streak = jnp.where(bad, s.nonfinite_streak + 1, 0)
         wm_old = s.wm_old
@@ -149,6 +174,7 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
             value=vstate,
             actor=astate,
             wm_old=wm_old,
+            explorer=explorer,
             updates=s.updates + 1,
             nonfinite_streak=streak,
             nonfinite_total=s.nonfinite_total + bad.astype(jnp.int32),
@@ -187,6 +213,7 @@ def make_learner(cfg: Config, obs_shape: tuple[int, ...], action_dim: int, bind:
 
     return Learner(
         init=init,
+        init_explorer=init_explorer,
         update=_update,
         learn=_learn,
         value_on_plan=value_on_plan,

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from mjx_collo import agent as agent_lib
+from mjx_collo import explorer as explorer_lib
 from mjx_collo import planner as planner_lib
 from mjx_collo import replay as replay_lib
 from mjx_collo import world_model as wm_lib
@@ -106,7 +107,15 @@ def make_rollout(cfg: Config, env: Any, bind: Bind, value_on_plan: ValueOnPlan) 
                 if value_mode == "plan_inner":
                     carry, m, vstate = agent_lib.replan_inner(agent, params, carry, vstate, k_plan)
                 else:
-                    carry, m = agent_lib.replan(agent, params, carry, k_plan)
+                    if training and agent.explore_planner is not None:
+                        # training plans seek what the model cannot predict yet (explorer.py);
+                        # the value still learns the task's returns of them (plan_final)
+                        curious = (params, explorer_lib.bonus_params(s.explorer))
+                        carry, m = agent_lib.replan(
+                            agent, curious, carry, k_plan, agent.explore_planner
+                        )
+                    else:
+                        carry, m = agent_lib.replan(agent, params, carry, k_plan)
                     if value_mode == "plan_final":
                         acts = jax.vmap(agent.planner.actions)(carry.mpc.plan)
                         batch = planner_lib.plan_value_batch(agent.model, params, carry.post, acts)

@@ -6,7 +6,7 @@ nothing else; with several seeds every leaf gets a leading seed axis.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import jax
 import optax
@@ -39,6 +39,10 @@ class TrainState:
     Bookkeeping: ``key`` this seed's RNG; ``hyper`` {dotted key: []} the swept float
     hyperparameters of this seed; ``updates`` world-model updates done; ``nonfinite_streak`` /
     ``nonfinite_total`` updates skipped for a non-finite loss or gradient, in a row and in all.
+
+    ``explorer``: the disagreement ensemble (:class:`mjx_collo.explorer.ExplorerState`) when
+    ``explore.disag.heads`` > 0, else None (last, with a default, so runs without one keep the
+    structure of their checkpoints).
     """
 
     wm: WorldModelParams
@@ -56,3 +60,4 @@ class TrainState:
     nonfinite_streak: jax.Array
     nonfinite_total: jax.Array
     lam_ema: jax.Array
+    explorer: Any = None

@@ -91,6 +91,7 @@ def validate(cfg: Config) -> None:
             f"would never learn; set value.v_every <= {pc.iters}"
         )
     config_lib.check_prior(cfg)
+    config_lib.check_explore(cfg)
     if run.prefill // per_iter < cfg.replay.length:
         raise ConfigError(
             f"run.prefill={run.prefill} env steps give {run.prefill // per_iter} replay rows per "
@@ -161,6 +162,7 @@ def make_train(cfg: Config, env) -> Trainer:
             nonfinite_streak=jnp.zeros((), jnp.int32),
             nonfinite_total=jnp.zeros((), jnp.int32),
             lam_ema=jnp.ones((), jnp.float32),
+            explorer=learner.init_explorer(c, k_wm),
         )
 
     def iteration(carry, _):

@@ -5,7 +5,7 @@ Two seeds on one device: the programs are then those of the smoke study's cells 
 tests (same config, same shapes), which the persistent compile cache shares between them.
 
 The value modes that learn from the plan (``plan_inner``, ``plan_final``), the augmented latent
-objective J_latent and colored (pink) exploration noise train here too, each with every float key
+objective J_latent, colored (pink) exploration noise and the disagreement bonus train here too, each with every float key
 of the config swept (one value each, the config's own): what the paper's ablations run, and proof
 that every key in ``config.float_keys`` traces. Every method's chunk, called for two consecutive chunks, is traced
 and compiled once."""
@@ -40,9 +40,14 @@ def every_float_key(cfg) -> dict[str, list[float]]:
 ABLATION_VARIANTS = {
     # debug plans run 3 solver iterations: a value step every one of them
     "plan_inner+j_latent": ["value.mode=plan_inner", "value.v_every=1", "j_latent.enabled=true"],
-    # with colored (pink) exploration noise, one program for both: the noise is drawn per env
-    # and episode whatever the value mode
-    "plan_final+pink_explore": ["value.mode=plan_final", "explore.color=1"],
+    # with colored (pink) exploration noise and Plan2Explore's disagreement bonus, one program
+    # for all three: the noise is drawn per env and episode whatever the value mode, and
+    # plan_final's value learns from the plans the bonus steers
+    "plan_final+pink_explore+disag": [
+        "value.mode=plan_final",
+        "explore.color=1",
+        "explore.disag.heads=3",
+    ],
 }
 
 
@@ -110,6 +115,12 @@ def test_one_chunk_of_every_method_trains_and_evaluates(method, overrides):
         assert agent_lib.carry_noise(s.agent).shape[-2:] == (steps, s.agent.prev_action.shape[-1])
         assert run.chunk_env_steps > cfg.env.episode_env_steps  # the chunk crossed episode ends
         assert _changed(agent_lib.carry_noise(s.agent), agent_lib.carry_noise(s0.agent))
+
+    if cfg.explore.disag.heads:  # the ensemble learns beside the world model
+        assert _changed(s.explorer.params, s0.explorer.params), "ensemble did not change"
+        disag = np.asarray(m["explore/disag"])  # NaN in the iterations without updates
+        trained = np.isfinite(disag)
+        assert trained.any() and np.all(disag[trained] > 0) and np.all(trained | np.isnan(disag))
 
     if overrides:
         # the ablation modes act and evaluate as collodreamer does (the value learns only in
