@@ -4,6 +4,8 @@ unknown. Its training through the trainer rides in tests/test_methods.py (plan_f
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,6 +21,7 @@ def _disag_cfg(**kw) -> config.DisagConfig:
     return config.DisagConfig(**{**base, **kw})
 
 
+@functools.cache  # shared by the tests that read a trained ensemble
 def _trained(steps: int = 300):
     """Heads trained on inputs x in [-1, 0] x [-1, 1] to predict sin(3 x) (2 dims)."""
     cfg = _disag_cfg()
@@ -79,7 +82,7 @@ MODEL = LatentModel(
 
 
 def test_the_bonus_is_the_only_change_and_scales_with_scale():
-    cfg, state, _ = _trained(50)
+    cfg, state, _ = _trained()
     z = jnp.array([2.0, 0.5])
     q = (None, explorer.bonus_params(state))
     d = explorer.disagreement(cfg, state.params, z) / explorer.norm(state)
