@@ -109,12 +109,15 @@ def train_step(
     updates, opt_state = _optimizer(cfg).update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     disag = jnp.sum(jnp.mean(jnp.std(pred, axis=0), axis=-1) * weight)
-    state = ExplorerState(
+    new = ExplorerState(
         params=params,
         opt_state=opt_state,
         norm_sum=EMA * state.norm_sum + (1 - EMA) * disag,
         norm_weight=EMA * state.norm_weight + (1 - EMA),
     )
+    # a non-finite batch (the world model's update is skipped then too) leaves the heads as they were
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves((loss, grads))]))
+    state = jax.tree.map(lambda n, o: jnp.where(finite, n, o), new, state)
     return state, {
         "explore/disag_loss": loss,
         "explore/disag": disag,

@@ -71,6 +71,15 @@ def test_masked_pairs_do_not_train_the_heads():
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_non_finite_batch_leaves_the_heads_as_they_were():
+    cfg = _disag_cfg()
+    state = explorer.init(cfg, jax.random.PRNGKey(0), 3, 2)
+    x = jax.random.normal(jax.random.PRNGKey(1), (8, 3)).at[0, 0].set(jnp.nan)
+    new, _ = explorer.train_step(cfg, state, x, jnp.ones((8, 2)), jnp.ones(8))
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(new), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 # Integrator z' = z + a with no task reward: only the bonus can steer a plan.
 MODEL = LatentModel(
     start=lambda p, c, a: c + a,
