@@ -77,7 +77,7 @@ preview: install gl
 
 # The CI suite: everything not marked slow (~8 min warm, ~15-17 min cold on 2 cores: docs/OPERATIONS.md).
 test: install gl
-	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup -m "not slow" $(PYTEST_ARGS)
 
 # Everything, including the statistical env-parity, learning and multi-process tests.
 test-all: install gl

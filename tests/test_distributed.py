@@ -107,6 +107,7 @@ def test_two_process_distributed_run_trains(tmp_path):
 
 # 3 seeds (more devices than cores) in make test-all only: make test stays under its 15 minutes
 @pytest.mark.parametrize("seeds", [pytest.param(3, marks=pytest.mark.slow), 4])
+@pytest.mark.heavy
 def test_seeds_split_over_cpu_devices_and_save(tmp_path, seeds):
     """``train.py --seeds n`` splits the host into CPU devices (host_devices): on 2 cores 3 seeds
     get one device each, 4 seeds one device per core with 2 vmapped seeds each. Each run writes its
@@ -136,6 +137,7 @@ def test_a_sharded_run_resumes_with_its_replay_grown(tmp_path):
     assert "replay moved from 103 to 205 rows per env" in longer.stdout
 
 
+@pytest.mark.heavy
 def test_a_single_run_evaluates_on_a_second_device_with_the_same_returns(tmp_path):
     """One seed gets 2 CPU devices (host_devices): it trains on the first while its evaluations
     run on the second, overlapping the next chunk. The returns equal those of evaluating in line

@@ -134,6 +134,7 @@ def test_a_lock_left_by_a_killed_process_is_taken_over(tmp_path):
     # keep `make test` under its 15 minutes
     [pytest.param("SIGINT", 130, marks=pytest.mark.slow), ("SIGTERM", 143)],
 )
+@pytest.mark.heavy
 def test_an_interrupted_run_saves_and_exits_128_plus_the_signal(tmp_path, sig, code):
     """Before: a run stopped by SIGINT or SIGTERM saved its checkpoint and exited 0, like a run
     that finished, so a scheduler could not tell it to requeue the job."""

@@ -49,6 +49,7 @@ def _check(task, tmp_path):
     assert obs.max() > obs.min()  # frames were written, not zeros
 
 
+@pytest.mark.heavy
 def test_one_chunk_of_pixel_training_on_reacher(tmp_path):
     _check("reacher_easy", tmp_path)
 

@@ -145,6 +145,7 @@ def _study(args: list[str], tmp: Path) -> subprocess.CompletedProcess:
     return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env=env, timeout=900)
 
 
+@pytest.mark.heavy
 def test_smoke_study_runs_resumes_without_retraining_and_reports(tmp_path):
     # Stopped after its first cell, as an interrupted study is left.
     first = _study(["run", "--max-cells", "1", "--no-report"], tmp_path)

@@ -56,13 +56,18 @@ def uninterrupted_and_resumed(tmp_root: str):
     return cfg, (res_a, state_a), (res_b, state_b)
 
 
-# Session scope: each xdist worker that runs these tests trains runs A and B once, even when it
-# leaves this module for another and comes back.
+# Session scope: the xdist worker that runs these tests trains runs A and B once. Every test that
+# reads them is in one xdist group (`--dist loadgroup` in `make test`), so one worker trains
+# them, not each; a group starts first (tests/conftest.py), so it is not the suite's tail.
+ON_RUNS = pytest.mark.xdist_group("trainer_runs")
+
+
 @pytest.fixture(scope="session")
 def runs(tmp_path_factory):
     return uninterrupted_and_resumed(str(tmp_path_factory.mktemp("runs")))
 
 
+@ON_RUNS
 def test_resumed_run_equals_uninterrupted_bit_for_bit(runs):
     cfg, (res_a, state_a), (res_b, state_b) = runs
     assert res_a.env_steps == res_b.env_steps == 2 * cfg.run.chunk_env_steps
@@ -80,6 +85,7 @@ def test_resumed_run_equals_uninterrupted_bit_for_bit(runs):
     np.testing.assert_array_equal(res_a.eval_returns[-1][1], res_b.eval_returns[-1][1])
 
 
+@ON_RUNS
 def test_run_directory_has_config_metrics_plots_checkpoints(runs, tmp_path_factory):
     cfg, (res_a, _), _ = runs
     d = res_a.run_dir
@@ -103,6 +109,7 @@ def test_run_directory_has_config_metrics_plots_checkpoints(runs, tmp_path_facto
     assert steps[-1] == 2 * cfg.run.chunk_env_steps
 
 
+@ON_RUNS
 def test_metrics_carry_wall_time_that_a_resumed_run_continues(runs):
     """Each row says how long the run had been going (``perf/wall_s``, launches and compiles
     included), evaluations how long they took: speed comparisons read them off metrics.jsonl.
@@ -123,6 +130,7 @@ def test_metrics_carry_wall_time_that_a_resumed_run_continues(runs):
     assert b_last >= a_at_first + res_b.chunk_s[0]
 
 
+@ON_RUNS
 def test_the_replay_holds_exactly_the_rows_the_run_writes(runs):
     """Sized to the run (a 100k pixel run: 0.6 GiB per seed, not the 2.9 GiB of a 500k
     capacity), and nothing written is ever overwritten: full at the end, the first row intact."""
@@ -141,6 +149,7 @@ def test_the_replay_holds_exactly_the_rows_the_run_writes(runs):
     "first_buffer",
     ["sized_to_a_shorter_run", pytest.param("capacity_sized_old_format", marks=pytest.mark.slow)],
 )
+@ON_RUNS
 def test_an_extended_or_old_checkpoint_resumes_bit_for_bit(
     runs, tmp_path, monkeypatch, first_buffer
 ):
@@ -188,6 +197,7 @@ def test_an_extended_or_old_checkpoint_resumes_bit_for_bit(
     np.testing.assert_array_equal(res_a.eval_returns[-1][1], res.eval_returns[-1][1])
 
 
+@ON_RUNS
 def test_seeds_differ_in_init_and_data(runs):
     _, (_, state), _ = runs
     w = jax.tree.leaves(state.wm)
@@ -247,6 +257,7 @@ def test_first_seed_with_a_sweep_fails_with_one_line(tmp_path):
     assert "--first-seed 2" in err and "sweep" in err
 
 
+@ON_RUNS
 def test_other_seeds_on_a_run_directory_fail_with_one_line(runs):
     """Seeds 1-2 asked of a run directory that holds seeds 0-1 (a study part resumed with
     another --first-seed): refused before compiling, naming both."""
@@ -258,6 +269,7 @@ def test_other_seeds_on_a_run_directory_fail_with_one_line(runs):
     assert "{'seed': 0}, {'seed': 1}" in err and "{'seed': 1}, {'seed': 2}" in err
 
 
+@ON_RUNS
 def test_checkpoint_from_another_config_fails_with_one_line(runs):
     _, (res_a, _), _ = runs
     err = _main_error(
@@ -284,6 +296,7 @@ def test_checkpoint_from_another_config_fails_with_one_line(runs):
         ("planner.mpc_step=4", "unknown config key 'planner.mpc_step'"),
     ],
 )
+@ON_RUNS
 def test_make_eval_rejects_overrides_that_do_not_fit_the_checkpoint(runs, override, message):
     _, (res_a, _), _ = runs
     err = _main_error(["--ckpt", str(res_a.run_dir), override], "evaluate.py")
@@ -301,6 +314,7 @@ def test_a_checkpoint_without_a_prior_cannot_be_evaluated_with_one():
     assert session.eval_config(debug_cfg(), ["planner.init=cem"]).planner.init == "cem"
 
 
+@ON_RUNS
 def test_make_eval_acts_with_the_prior_alone_or_the_planner_alone(runs, tmp_path):
     """A checkpoint of the default, which trains the policy prior (planner.init=policy_cem), is
     evaluated three ways on the same episodes, as docs/ALGORITHM.md §4.10 tells users to: with
