@@ -110,6 +110,7 @@ class WorldModelConfig(Section):
     reward_bins: int
     symlog_obs: bool
     cnn_depth: int
+    decode_every: Positive
     kl: KLConfig
     loss_scales: LossScales
     optim: OptimConfig
@@ -390,6 +391,7 @@ ADDED_KEYS: dict[str, Any] = {
     "planner.init_cem.color_frac": 1.0,
     "planner.shooting.color_frac": 1.0,
     "explore.disag": {"heads": 0, "layers": 2, "units": 128, "lr": 3.0e-4, "scale": 1.0},
+    "wm.decode_every": 1,
 }
 
 
@@ -496,7 +498,8 @@ def inert_keys(flat: Mapping[str, Any]) -> set[str]:
     encoder's ``wm.cnn_depth`` in a run that sees states, and how the policy prior trains
     (:data:`PRIOR_KEYS`) in a run without one. A default changed for pixel runs, or for the
     prior, then leaves the other runs resumable and combinable with runs written before it."""
-    inert = {"wm.cnn_depth"} if flat.get("env.obs", "state") == "state" else set()
+    pixel_only = {"wm.cnn_depth", "wm.decode_every"}
+    inert = pixel_only if flat.get("env.obs", "state") == "state" else set()
     if not _flat_uses_prior(flat):
         inert |= set(PRIOR_KEYS)
     if not flat.get("explore.disag.heads", 0):

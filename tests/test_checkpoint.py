@@ -164,4 +164,8 @@ def test_conv_depth_differs_only_for_pixel_runs():
     px_old = config.load(overrides=["env.obs=pixels", "wm.cnn_depth=32"])
     px_new = config.load(overrides=["env.obs=pixels", "wm.cnn_depth=16"])
     assert config.diff(px_old, px_new) == ["wm.cnn_depth: 32 -> 16"]
+    # the same for the pixel-only wm.decode_every
+    assert config.diff(state_old, config.load(overrides=["wm.decode_every=4"])) == []
+    px_every = config.load(overrides=["env.obs=pixels", "wm.cnn_depth=32", "wm.decode_every=4"])
+    assert config.diff(px_old, px_every) == ["wm.decode_every: 1 -> 4"]
     assert "env.obs: 'state' -> 'pixels'" in config.diff(state_old, px_new)

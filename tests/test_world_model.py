@@ -813,3 +813,46 @@ def test_a_pixel_world_model_lowers_its_reconstruction_loss_on_real_frames():
     m = fit(params, opt)
     assert np.isfinite(np.asarray(m["loss/obs"])).all()
     assert m["loss/obs"][-5:].mean() < 0.5 * m["loss/obs"][:5].mean()
+
+
+def test_decode_every_reconstructs_every_kth_frame_of_pixels_and_leaves_states_alone():
+    """``wm.decode_every=k`` (pixels only): the image term is the mean over frames 0, k, 2k, ...
+    of each sequence of what decoding every frame gives there, and the decoder runs on those
+    frames alone (its conv work falls ~k-fold). The rest of the ELBO is unchanged. A state run
+    ignores the key (inert: its loss is the same bit for bit)."""
+    from mjx_collo import flops
+
+    b, t, k = 2, 6, 3
+    frames = jax.random.randint(jax.random.key(3), (b, t, 64, 64, 3), 0, 256).astype(jnp.uint8)
+    batch = {**_batch(jax.random.key(1), b=b, t=t), "obs": frames}
+    key = jax.random.key(2)
+    every, kth = (_cfg("categorical", "wm.cnn_depth=2", f"wm.decode_every={n}") for n in (1, k))
+    params = wm.init(every, jax.random.key(0), (64, 64, 3), ACT)
+    _, losses_all, m_all, post = wm.loss(every, params, batch, key)
+    _, losses_k, m_k, _ = wm.loss(kth, params, batch, key)
+    target = wm.preprocess_obs(every, params, frames)
+    sq = jnp.square(wm.decode(every, params, post.feat) - target)
+    per_frame = 0.5 * jnp.sum(sq, axis=(2, 3, 4))  # [b, t]
+    np.testing.assert_allclose(losses_all["obs"], per_frame.mean(), rtol=1e-5)
+    np.testing.assert_allclose(losses_k["obs"], per_frame[:, ::k].mean(), rtol=1e-5)
+    assert not np.isclose(float(losses_k["obs"]), float(losses_all["obs"]))
+    for name in ("reward", "kl"):
+        np.testing.assert_array_equal(losses_k[name], losses_all[name])
+    np.testing.assert_allclose(m_k["err/obs_mse"], jnp.mean(sq[:, ::k]), rtol=1e-5)
+
+    def update_flops(c):
+        return flops.matmul_flops(jax.grad(lambda p: wm.loss(c, p, batch, key)[0]), params).flops
+
+    # one forward pass of the decoder over all frames; k = 3 skips 2/3 of it, and of its backward
+    decoder = flops.matmul_flops(lambda p: wm.decode(every, p, post.feat), params).flops
+    assert update_flops(every) - update_flops(kth) > 0.6 * decoder
+
+    state, state_k = (_cfg("categorical", f"wm.decode_every={n}") for n in (1, k))
+    params = wm.init(state, jax.random.key(0), (OBS,), ACT)
+    vec = _batch(jax.random.key(1))
+    for a, c in zip(
+        wm.loss(state, params, vec, key)[1].values(),
+        wm.loss(state_k, params, vec, key)[1].values(),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(a, c)

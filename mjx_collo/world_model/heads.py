@@ -42,7 +42,8 @@ def _apply(module: Any, p: Params, *args: jax.Array) -> jax.Array:
     return module.apply({"params": p}, *args)
 
 
-def _is_pixel(params: Params) -> bool:
+def is_pixel(params: Params) -> bool:
+    """Whether these world-model parameters see pixels (a conv encoder) rather than vectors."""
     return "enc_conv" in params
 
 
@@ -61,14 +62,14 @@ def preprocess_obs(cfg: WorldModelConfig, params: Params, obs: jax.Array) -> jax
     ``cfg.symlog_obs`` else ``x``. Shape unchanged, float32.
     """
     x = obs.astype(jnp.float32)
-    if _is_pixel(params):
+    if is_pixel(params):
         return x / 255.0 - 0.5
     return symlog(x) if cfg.symlog_obs else x
 
 
 def postprocess_obs(cfg: WorldModelConfig, params: Params, x: jax.Array) -> jax.Array:
     """Inverse of :func:`preprocess_obs` (decoder output -> raw observation units)."""
-    if _is_pixel(params):
+    if is_pixel(params):
         return (x + 0.5) * 255.0
     return symexp(x) if cfg.symlog_obs else x
 
@@ -76,14 +77,14 @@ def postprocess_obs(cfg: WorldModelConfig, params: Params, x: jax.Array) -> jax.
 def encode(cfg: WorldModelConfig, params: Params, obs: jax.Array) -> jax.Array:
     """``obs: [..., *obs_shape]`` raw -> embedding ``[..., E]``."""
     x = preprocess_obs(cfg, params, obs)
-    if _is_pixel(params):
+    if is_pixel(params):
         return _apply(nets.ConvEncoder(cfg.cnn_depth), params["enc_conv"], x)
     return _apply(nets.MLP(cfg.enc_layers, cfg.units, act=cfg.act), params["enc_mlp"], x)
 
 
 def decode(cfg: WorldModelConfig, params: Params, feat: jax.Array) -> jax.Array:
     """``feat: [..., F]`` -> predicted observation mean in network space ``[..., *obs_shape]``."""
-    if _is_pixel(params):
+    if is_pixel(params):
         channels = params["dec_conv"]["ConvTranspose_3"]["kernel"].shape[-1]
         return _apply(nets.ConvDecoder(channels, cfg.cnn_depth), params["dec_conv"], feat)
     dim = params["dec_mlp"][f"Dense_{cfg.dec_layers}"]["kernel"].shape[-1]

@@ -24,6 +24,7 @@ from mjx_collo.world_model.heads import (
     _reward_nll,
     _reward_out,
     decode,
+    is_pixel,
     preprocess_obs,
 )
 from mjx_collo.world_model.rssm import (
@@ -175,8 +176,12 @@ def _loss_io(
     obs, action, first = batch["obs"], batch["action"], batch["is_first"]
     post, prior, inputs = _observe_io(cfg, params, obs, action, first, key, None, unroll, taps)
     feat = get_feat(post)
-    target = preprocess_obs(cfg, params, batch["obs"])
-    sq_obs = jnp.square(decode(cfg, params, feat) - target)
+    # Pixels with wm.decode_every = k: the image term is the mean over every k-th frame of each
+    # sequence (an unbiased estimate of the full term's mean; replay sequences start anywhere, so
+    # every frame is decoded in some batches). The decoder is ~half a pixel update's time on CPU.
+    k = cfg.decode_every if is_pixel(params) else 1
+    target = preprocess_obs(cfg, params, batch["obs"][:, ::k])
+    sq_obs = jnp.square(decode(cfg, params, feat[:, ::k]) - target)
     rew = batch["reward"].astype(jnp.float32)
     rew_out = _reward_out(cfg, params, feat)  # one pass of the head: the loss and the error metric
     sq_rew = jnp.square(_reward_mean(cfg, rew_out) - rew)
