@@ -75,7 +75,7 @@ gl:
 preview: install gl
 	MUJOCO_GL=$${MUJOCO_GL:-osmesa} $(PY) -m envs.reference $(ENV) --out preview $(ARGS)
 
-# The CI suite: everything not marked slow (~8 min warm, ~15-17 min cold on 2 cores: docs/OPERATIONS.md).
+# The CI suite: everything not marked slow (~9 min warm, ~11-15 min cold on 2 cores: docs/OPERATIONS.md).
 test: install gl
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup -m "not slow" $(PYTEST_ARGS)
 
