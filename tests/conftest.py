@@ -50,10 +50,12 @@ def dmc_pool():
 
 
 def pytest_collection_modifyitems(config, items):
-    """Start the long tests first. `make test` hands tests to its two xdist workers in collection
-    order, so a 100 s test collected last runs while the other worker idles. xdist groups (tests
-    sharing one trained fixture, run by one worker: ~4 min) go first, then tests marked ``heavy``
-    (each ~30 s or more cold), each in collected order; the rest fill in behind them."""
+    """Start the long tests first. `make test` (`--dist loadgroup`) hands work units to its two
+    xdist workers in collection order (xdist itself puts the units of most tests first, which is
+    the trainer group), so a 100 s test collected last would run while the other worker idles.
+    xdist groups (tests sharing one trained fixture, run by one worker: ~5 min cold) go first,
+    then tests marked ``heavy`` (each ~30 s or more cold), each in collected order; the rest
+    fill in behind them."""
 
     def rank(item):
         if item.get_closest_marker("xdist_group"):
