@@ -198,6 +198,19 @@ def _fmt(scores: np.ndarray | None) -> str:
     return f"{m:.0f} [{lo:.0f}, {hi:.0f}]"
 
 
+def _score(s: Series, budget: int, target: int) -> str:
+    """A table entry: the return at ``budget``; for a cell still training towards it (its target
+    is at least ``budget``, its last evaluation before), the last evaluation, named as such, so a
+    partial table says how far each run got instead of a bare dash."""
+    if (scores := s.at(budget)) is not None:
+        return _fmt(scores)
+    before = [step for step in s.evals if step < budget]
+    if target >= budget and before and s.env_steps < budget:
+        last = max(before)
+        return f"{_fmt(s.evals[last])} at {_k(last)} (partial)"
+    return "—"
+
+
 def _budget_of(cfg: StudyConfig, task: str, budget: int | str) -> int | None:
     return cfg.paper_budgets.get(task) if budget == "paper" else int(budget)
 
@@ -304,9 +317,13 @@ def _task_block(
     lines = [f"{level} {task}", "", f"![{task}]({png.parent.name}/{png.name})", ""]
     heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
     lines += ["| variant | " + " | ".join(heads) + " |", "|---" * (1 + len(heads)) + "|"]
+    targets = {c.variant.name: c.steps for c in study_lib.cells(cfg) if c.task == task}
     for s in series:
         row = [
-            _fmt(s.at(b)) if (b := _budget_of(cfg, task, x)) is not None else "—" for x in budgets
+            _score(s, b, targets.get(s.variant, 0))
+            if (b := _budget_of(cfg, task, x)) is not None
+            else "—"
+            for x in budgets
         ]
         lines.append(f"| {s.label} (n={s.runs}) | " + " | ".join(row) + " |")
     # published anchors: a row each, the score in the column of the budget it was reported at

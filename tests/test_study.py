@@ -311,6 +311,26 @@ def test_partial_study_reports_what_exists_and_marks_the_rest(tmp_path):
     assert "| *random policy* | 43.1 |" in md  # an anchor: a row, in its budget's column
 
 
+def test_a_cell_still_training_shows_its_last_evaluation_in_the_table(tmp_path):
+    """A cell stopped at 400 of 800 env steps (a study across sessions): its row shows the last
+    evaluation, named as partial, rather than a dash; a finished cell shows its budget's return."""
+    _, cfg = study.load(str(SMOKE))
+    for variant, steps in (("collodreamer", (400, 800)), ("dreamer", (400,))):
+        cell = tmp_path / "results" / "reacher_easy" / variant
+        cell.mkdir(parents=True)
+        rows = []
+        for step in steps:
+            for seed, r in enumerate((step / 10, step / 10 + 20)):
+                rows.append({"step": step, "seed": seed, "kind": "train", "perf/wall_s": 1.0})
+                rows.append({"step": step, "seed": seed, "kind": "eval", "eval/return": r})
+        (cell / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
+    assert "- reacher_easy/dreamer: 400 of 800 env steps" in md
+    row = {x.split(" |")[0]: x for x in md.splitlines() if x.startswith("| ") and "(n=2)" in x}
+    assert row["| collodreamer (n=2)"].endswith("| 90 [80, 100] |")
+    assert row["| dreamer (n=2)"].endswith("| 50 [40, 60] at 400 (partial) |")
+
+
 def test_a_prior_runs_prior_alone_evaluations_are_a_series_of_their_own(tmp_path):
     """A cell whose runs log ``eval/return_prior`` (a policy-prior run) reports it as a second
     series, "<variant>, prior alone", in the task table, with no cost row of its own."""
