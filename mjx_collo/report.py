@@ -403,7 +403,10 @@ def write(name: str, cfg: StudyConfig, results: Path, out_md: Path) -> Path:
         reached = max((s.env_steps for s in series), default=0)
         runs = sum(s.runs for s in series if not s.prior_alone)
         if reached < cell.steps:
-            missing.append(f"{cell.key}: {_k(reached)} of {_k(cell.steps)} env steps")
+            # a cell trained in parts: the first part's progress, the other parts not begun
+            whole = study_lib.runs_per_cell(cell)
+            started = f", {runs} of {whole} runs started" if 0 < runs < whole else ""
+            missing.append(f"{cell.key}: {_k(reached)} of {_k(cell.steps)} env steps{started}")
         elif runs < study_lib.runs_per_cell(cell):  # a cell trained in parts, some not yet
             missing.append(f"{cell.key}: {runs} of {study_lib.runs_per_cell(cell)} runs")
         for s in series:

@@ -325,10 +325,15 @@ def test_a_cell_still_training_shows_its_last_evaluation_in_the_table(tmp_path):
                 rows.append({"step": step, "seed": seed, "kind": "eval", "eval/return": r})
         (cell / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
-    assert "- reacher_easy/dreamer: 400 of 800 env steps" in md
+    assert "- reacher_easy/dreamer: 400 of 800 env steps\n" in md
     row = {x.split(" |")[0]: x for x in md.splitlines() if x.startswith("| ") and "(n=2)" in x}
     assert row["| collodreamer (n=2)"].endswith("| 90 [80, 100] |")
     assert row["| dreamer (n=2)"].endswith("| 50 [40, 60] at 400 (partial) |")
+    # dreamer trains in parts (one seed per program): only its first part begun
+    dreamer = tmp_path / "results" / "reacher_easy" / "dreamer" / "metrics.jsonl"
+    dreamer.write_text("".join(x + "\n" for x in dreamer.read_text().splitlines()[:2]))
+    md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
+    assert "- reacher_easy/dreamer: 400 of 800 env steps, 1 of 2 runs started\n" in md
 
 
 def test_a_prior_runs_prior_alone_evaluations_are_a_series_of_their_own(tmp_path):
