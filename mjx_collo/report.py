@@ -201,13 +201,17 @@ def _fmt(scores: np.ndarray | None) -> str:
 def _score(s: Series, budget: int, target: int) -> str:
     """A table entry: the return at ``budget``; for a cell still training towards it (its target
     is at least ``budget``, its last evaluation before), the last evaluation, named as such, so a
-    partial table says how far each run got instead of a bare dash."""
+    partial table says how far each run got instead of a bare dash. A cell that trained past a
+    budget it never evaluated at (the paper's 25k in a cell evaluated every 10k) shows its last
+    evaluation before the budget, named by its step: a reading on no more data than the budget
+    allows, never an interpolation."""
     if (scores := s.at(budget)) is not None:
         return _fmt(scores)
     before = [step for step in s.evals if step < budget]
-    if target >= budget and before and s.env_steps < budget:
+    if target >= budget and before:
         last = max(before)
-        return f"{_fmt(s.evals[last])} at {_k(last)} (partial)"
+        note = " (partial)" if s.env_steps < budget else ""
+        return f"{_fmt(s.evals[last])} at {_k(last)}{note}"
     return "—"
 
 
@@ -343,7 +347,11 @@ def _task_block(
     lines.append("")
     lines += _facts_block(cfg, task, series, budgets)
     if "paper" in budgets:
-        lines += [f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps.", ""]
+        lines += [
+            f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps; a cell "
+            "with no evaluation there shows its last one before it, named by its step.",
+            "",
+        ]
     return lines
 
 

@@ -336,6 +336,20 @@ def test_a_cell_still_training_shows_its_last_evaluation_in_the_table(tmp_path):
     assert "- reacher_easy/dreamer: 400 of 800 env steps, 1 of 2 runs started\n" in md
 
 
+def test_a_budget_between_evaluations_reads_the_last_evaluation_before_it():
+    """The comparison's 100k cells evaluate every 10k; the paper's budget for cheetah is 25k. Its
+    column shows the 20k evaluation, named by its step (no more data than the budget allows),
+    rather than a dash; a run that has not reached the budget yet is also marked partial."""
+    s = report.Series(label="x", env_steps=100_000, runs=2)
+    s.evals = {k: np.array([k / 1000, k / 1000 + 20.0]) for k in (10_000, 20_000, 30_000)}
+    assert report._score(s, 25_000, 100_000) == "30 [20, 40] at 20k"
+    assert report._score(s, 30_000, 100_000) == "40 [30, 50]"
+    s.env_steps = 22_000
+    assert report._score(s, 25_000, 100_000) == "30 [20, 40] at 20k (partial)"
+    # a cell whose own budget ends before this column (the paper preset at 25k, column 100k)
+    assert report._score(s, 100_000, 25_000) == "—"
+
+
 def test_a_prior_runs_prior_alone_evaluations_are_a_series_of_their_own(tmp_path):
     """A cell whose runs log ``eval/return_prior`` (a policy-prior run) reports it as a second
     series, "<variant>, prior alone", in the task table, with no cost row of its own."""
