@@ -222,11 +222,12 @@ class QuadrupedMove(base.MjxTask):
         return {"upright": data.xmat[..., self._torso, 2, 2]}
 
     def eval_metrics(self, signals, returns):
-        """How the episodes started and whether the down ones got up: a start is on its feet when
-        the torso's upright (the z component of its z-axis) is >= 0.5 at reset, and an episode
-        ended up when its upright averaged > 0.8 over the last 100 agent steps (the classes of
-        ``benchmarks/probe_quadruped.py``). The walk pays ~0 on the back, so a return is mostly
-        the number of starts on their feet until an agent learns to get up."""
+        """How the episodes started, whether the down ones got up and whether the ones on their
+        feet stayed there: a start is on its feet when the torso's upright (the z component of its
+        z-axis) is >= 0.5 at reset, and an episode ended up when its upright averaged > 0.8 over
+        the last 100 agent steps (the classes of ``benchmarks/probe_quadruped.py``). The walk pays
+        ~0 on the back, so a return is mostly the number of starts on their feet until an agent
+        learns to get up, and the number that fell."""
         u = signals["upright"]  # [steps + 1, episodes]
         on_feet = u[0] >= START_ON_FEET
         ended_up = u[-ENDED_UP_STEPS:].mean(0) > ENDED_UP
@@ -241,6 +242,9 @@ class QuadrupedMove(base.MjxTask):
         return {
             "starts_on_feet": on_feet.sum().astype(jnp.float32),
             "got_up": (down & ended_up).sum().astype(jnp.float32),
+            # on its feet at reset, not at the end: the agent toppled itself (a still body keeps
+            # its feet; the default's runs flipped onto their backs, docs/EXPERIMENTS.md)
+            "fell": (on_feet & ~ended_up).sum().astype(jnp.float32),
             "return_on_feet": mean_of(on_feet),
             "return_down": mean_of(down),
         }

@@ -28,7 +28,7 @@ from mjx_collo.study import StudyConfig
 
 MAX_RETURN = 1000.0  # dm_control rewards are in [0, 1] per env step, 1000 steps per episode
 REPS = 2000  # bootstrap resamples
-FACTS = ("starts_on_feet", "got_up")  # the task facts a report shows (Env.eval_metrics)
+FACTS = ("starts_on_feet", "got_up", "fell")  # the task facts a report shows (Env.eval_metrics)
 
 
 @dataclass
@@ -366,8 +366,9 @@ def _facts_block(
         return []
     heads = [("paper budget" if b == "paper" else _k(int(b))) for b in budgets]
     lines = [
-        "Evaluation starts on their feet (torso upright >= 0.5 at reset) and down starts that got "
-        "up (upright > 0.8 over the last 100 agent steps), over all seeds' episodes:",
+        "Evaluation starts on their feet (torso upright >= 0.5 at reset; *fell*: not up at the "
+        "end, where logged) and down starts that got up (upright > 0.8 over the last 100 agent "
+        "steps), over all seeds' episodes:",
         "",
         "| variant | " + " | ".join(heads) + " |",
         "|---" * (1 + len(heads)) + "|",
@@ -381,8 +382,12 @@ def _facts_block(
                 continue
             feet, n = int(f["starts_on_feet"].sum()), s.episodes * s.runs
             up = int(f["got_up"].sum()) if "got_up" in f else 0
+            # evaluations logged since 2026-12-07 (late) also count the starts on feet that fell
+            fell = f" ({int(f['fell'].sum())} fell)" if "fell" in f else ""
             row.append(
-                f"{feet} of {n} on feet, {up} of {n - feet} got up" if n else f"{feet}, {up}"
+                f"{feet} of {n} on feet{fell}, {up} of {n - feet} got up"
+                if n
+                else f"{feet}{fell}, {up}"
             )
         lines.append(f"| {s.label} | " + " | ".join(row) + " |")
     return lines + [""]

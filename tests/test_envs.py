@@ -229,6 +229,7 @@ def test_quadruped_evaluation_counts_starts_on_feet_and_get_ups():
     returns = jnp.array([600.0, 300.0, 20.0, 60.0])
     m = env.eval_metrics({"upright": jnp.asarray(trajectories)}, returns)
     assert float(m["starts_on_feet"]) == 2 and float(m["got_up"]) == 1
+    assert float(m["fell"]) == 1  # the last episode: on its feet at reset, on its back at the end
     assert float(m["return_on_feet"]) == pytest.approx(330.0)
     assert float(m["return_down"]) == pytest.approx(160.0)
     none_up = env.eval_metrics({"upright": jnp.asarray(trajectories[:, 1:3])}, returns[1:3])

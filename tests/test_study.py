@@ -411,6 +411,14 @@ def test_quadruped_reports_show_the_starts_on_their_feet_and_the_get_ups(tmp_pat
     assert line == "| collodreamer | 3 of 10 on feet, 1 of 7 got up |", line
     facts = md.split("Evaluation starts on their feet")[1].split("## Aggregate")[0]
     assert line in facts and "prior alone" not in facts
+    # evaluations that also count the starts on their feet that fell (logged since 2026-12-07)
+    for r in rows:
+        if r["kind"] == "eval":
+            r["eval/fell"] = r["eval/starts_on_feet"] - 1.0
+    (cell / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
+    line = next(x for x in md.splitlines() if x.startswith("| collodreamer | "))
+    assert line == "| collodreamer | 3 of 10 on feet (1 fell), 1 of 7 got up |", line
 
 
 def test_ablation_study_is_the_issue_grid():
