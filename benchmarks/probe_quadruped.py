@@ -22,7 +22,11 @@ a quarter of its walking return. The probe separates "cannot walk" from "cannot 
    temporally correlated action samples (how findable getting up is, given the model);
 4. evaluations: each logged evaluation's starts are re-drawn from the run's keys (as
    runner.start_evaluation and rollout.episodes draw them) and the logged mean return is split by
-   least squares into a return per start that lands on its feet and per start that does not.
+   least squares into a return per start that lands on its feet and per start that does not;
+5. model and value on the episodes that started on their feet (replay, newest checkpoint): from 5
+   filtered steps, the world model's open-loop prediction of the torso upright and the reward
+   under the actions the agent executed, against what happened (does the model know that these
+   actions flip the body?), and the value of the posterior when upright against on its back.
 
 Writes ``bench_results/quadruped_probe.json`` (one entry per run directory).
 """
@@ -179,6 +183,104 @@ def perfect_model_cem(hold: int, samples: int = 200, iters: int = 30, seed: int 
     return best
 
 
+def model_check(cfg, state, ui: int, filtered: int = 5, horizon: int = 60) -> list[dict]:
+    """Part 5, per run: for each replay episode that started on its feet (after the prefill's 5),
+    the model filters ``filtered`` steps, then predicts ``horizon`` agent steps open loop under the
+    executed actions; the episode "flipped" when its real upright averaged < 0 over the window's
+    last 10 steps. Also the value (target network) on the posterior features of agent steps 50-150
+    of episodes 50 on, by the real upright there (> 0.8 upright, < -0.8 on its back)."""
+    import jax
+    import numpy as np
+
+    from mjx_collo import value as value_lib
+    from mjx_collo.world_model import heads, rssm
+
+    k, h, wm = filtered, horizon, cfg.wm
+
+    @jax.jit
+    def predict(params, obs, act, first, key):  # rows hold obs_t and action_{t-1}
+        post, _ = rssm.observe(wm, params, obs[None, :k], act[None, :k], first[None, :k], key)
+        start = jax.tree.map(lambda x: x[0, k - 1], post)
+        feat = rssm.get_feat(rssm.imagine(wm, params, start, act[k : k + h], key))
+        return heads.predict_obs(wm, params, feat)[:, ui], heads.reward(wm, params, feat)
+
+    @jax.jit
+    def values(params, vparams, obs, act, first, key):
+        post, _ = rssm.observe(wm, params, obs[None], act[None], first[None], key)
+        return value_lib.apply_value(cfg.value, vparams, rssm.get_feat(post))[0]
+
+    data = {f: np.asarray(state.replay.data[f])[:, :, 0] for f in ("obs", "action", "reward")}
+    data["is_first"] = np.asarray(state.replay.data["is_first"])[:, :, 0]
+    count = np.broadcast_to(np.asarray(state.replay.count), (data["obs"].shape[0],))
+    key = jax.random.PRNGKey(0)
+    at = [9, 19, 39, 59]  # agent steps after the filtered ones
+    out = []
+    for s in range(data["obs"].shape[0]):
+        params = jax.tree.map(lambda x, s=s: x[s], state.wm)
+        vparams = jax.tree.map(lambda x, s=s: x[s], state.value.target)
+        obs, act = data["obs"][s, : count[s]], data["action"][s, : count[s]]
+        rew, first = data["reward"][s, : count[s]], data["is_first"][s, : count[s]]
+        rows = {"flipped": [], "stayed": []}
+        v_up, v_back = [], []
+        for i, a in enumerate(np.flatnonzero(first)):
+            seg = slice(a, a + k + h)
+            if a + 300 <= count[s] and i >= 50:
+                v = np.asarray(
+                    values(
+                        params, vparams, obs[a : a + 300], act[a : a + 300], first[a : a + 300], key
+                    )
+                )[50:150]
+                u = obs[a + 50 : a + 150, ui]
+                v_up += v[u > 0.8].tolist()
+                v_back += v[u < -0.8].tolist()
+            if a + k + h > count[s] or obs[a, ui] < UP or i < 5:
+                continue
+            pu, pr = (np.asarray(x) for x in predict(params, obs[seg], act[seg], first[seg], key))
+            real = obs[a + k : a + k + h, ui]
+            rows["flipped" if real[-10:].mean() < 0 else "stayed"].append(
+                (real[at], pu[at], rew[a + k : a + k + h].sum(), pr.sum())
+            )
+        entry = {
+            "run": s,
+            "value_upright": float(np.mean(v_up)) if v_up else None,
+            "value_on_back": float(np.mean(v_back)) if v_back else None,
+            "reward_per_step_upright": float(rew[obs[:, ui] > 0.8].mean()),
+        }
+        for tag, r in rows.items():
+            entry[tag] = {
+                "episodes": len(r),
+                "upright_at_10_20_40_60_real": np.mean([x[0] for x in r], 0)
+                .astype(float)
+                .round(2)
+                .tolist()
+                if r
+                else None,
+                "upright_at_10_20_40_60_predicted": np.mean([x[1] for x in r], 0)
+                .astype(float)
+                .round(2)
+                .tolist()
+                if r
+                else None,
+                f"reward_over_{h}_real": float(np.mean([x[2] for x in r])) if r else None,
+                f"reward_over_{h}_predicted": float(np.mean([x[3] for x in r])) if r else None,
+            }
+            if r:
+                print(
+                    f"  run {s}, {len(r)} on-feet episodes that {tag}: upright at +10/+20/+40/+60 "
+                    f"real {entry[tag]['upright_at_10_20_40_60_real']}, predicted open loop "
+                    f"{entry[tag]['upright_at_10_20_40_60_predicted']}; reward over {h} steps real "
+                    f"{entry[tag][f'reward_over_{h}_real']:.1f}, predicted "
+                    f"{entry[tag][f'reward_over_{h}_predicted']:.1f}"
+                )
+        print(
+            f"  run {s}: value upright {entry['value_upright']:.1f}, on its back "
+            f"{entry['value_on_back']:.1f} (reward per agent step upright "
+            f"{entry['reward_per_step_upright']:.2f})"
+        )
+        out.append(entry)
+    return out
+
+
 def probe_run(run: Path) -> dict:
     import jax
     import mujoco
@@ -224,6 +326,8 @@ def probe_run(run: Path) -> dict:
             f"{len(down)} started down, {side} of them reached a side, {got_up} got up; "
             f"{len(on_feet)} started on their feet, {fell} of them ended down"
         )
+
+    model = model_check(cfg, state, ui)
 
     torso = mujoco.mj_name2id(base.mj_model, mujoco.mjtObj.mjOBJ_BODY, "torso")
     n = cfg.run.eval_episodes
@@ -274,6 +378,7 @@ def probe_run(run: Path) -> dict:
         "method": cfg.method,
         "checkpoint_env_steps": int(step),
         "training": training,
+        "model": model,
         "eval_return_per_start_on_feet": float(r_feet),
         "eval_return_per_start_down": float(r_down),
         "eval_fit_r2": float(r2),
