@@ -6,10 +6,11 @@ The prior's loss is ``actor.pg`` x Dreamer's objective through the model + ``act
 squared error to the actions the agent took (docs/ALGORITHM.md §4.10). The two terms live on
 different scales: the objective is a lambda-return (tens to hundreds), the cloning term a
 squared error per action dimension (~1). On a run's newest checkpoint (with its replay) this
-measures, per run, the global norm of each term's gradient with respect to the prior's
-parameters on replay batches drawn as the learner draws them (the same starts subset), so a
-cloning weight can be chosen that makes the pull of the data comparable to the model's: the
-ratio |grad pg| / |grad bc| is the ``actor.bc`` at which the two gradients are of equal size.
+measures, per run, each term's gradient with respect to the prior's parameters, averaged over
+replay batches drawn as the learner draws them (the same starts subset): the ratio of their
+norms |grad pg| / |grad bc| is the ``actor.bc`` at which the two pull equally, and their cosine
+says whether they pull the same way. Measured on one checkpoint: the ratio changes as training
+goes (the objective's gradient grows with the returns).
 Appends one entry per run directory to ``bench_results/prior_terms.json``.
 """
 
@@ -29,7 +30,7 @@ def probe(run: Path, batches: int) -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    import optax
+    from jax.flatten_util import ravel_pytree
 
     import envs
     from mjx_collo import actor as actor_lib
@@ -37,6 +38,7 @@ def probe(run: Path, batches: int) -> dict:
     from mjx_collo import replay as replay_lib
     from mjx_collo import world_model as wm_lib
     from mjx_collo.agent import uses_prior
+    from mjx_collo.world_model import rssm
 
     ck = checkpoint.Checkpointer(run, read_only=True)
     _, meta = ck.newest_meta()
@@ -48,17 +50,18 @@ def probe(run: Path, batches: int) -> dict:
     imag = wm_lib.imagination_model(c.wm)
 
     @jax.jit
-    def norms(s, key):
-        k_batch, k_wm, k_a, k_pick = jax.random.split(key, 4)
+    def grads(s, key):
+        """The two terms' gradients (flat) on one replay batch, drawn as the learner draws it."""
+        k_batch, k_obs, k_a, k_pick = jax.random.split(key, 4)
         batch = replay_lib.sample(s.replay, k_batch, c.replay.batch, c.replay.length)
-        post = wm_lib.train_step(c.wm, s.wm, s.wm_opt, batch, k_wm, None)[3]
-        starts = actor_lib.flatten_starts(post.state, 2)
+        post, _ = rssm.observe(c.wm, s.wm, batch["obs"], batch["action"], batch["is_first"], k_obs)
+        starts = actor_lib.flatten_starts(post, 2)
         n = jax.tree.leaves(starts)[0].shape[0]
         if 0 < c.actor.starts < n:  # the learner's subset of imagination starts
             pick = jax.random.permutation(k_pick, n)[: c.actor.starts]
             starts = jax.tree.map(lambda x: x[pick], starts)
         starts = jax.lax.stop_gradient(starts)
-        feat = jax.lax.stop_gradient(post.feat[:, :-1])
+        feat = jax.lax.stop_gradient(rssm.get_feat(post)[:, :-1])
         act = batch["action"][:, 1:]  # the action taken from f_t is stored with row t+1
         bc = (
             feat.reshape(-1, feat.shape[-1]),
@@ -71,25 +74,32 @@ def probe(run: Path, batches: int) -> dict:
 
         g_pg = jax.grad(pg)(s.actor.params)["params"]
         g_bc = jax.grad(lambda p: actor_lib.bc_loss(c.actor, p, *bc))(s.actor.params)["params"]
-        return optax.global_norm(g_pg), optax.global_norm(g_bc)
+        return ravel_pytree(g_pg)[0], ravel_pytree(g_bc)[0]
 
     rows = []
     for r in range(meta["num_runs"]):
         s = jax.tree.map(lambda x, r=r: x[r], state)
-        out = np.array(
-            [[float(x) for x in norms(s, jax.random.PRNGKey(i))] for i in range(batches)]
-        )
+        g = [grads(s, jax.random.PRNGKey(i)) for i in range(batches)]
+        pg_, bc_ = (np.stack([np.asarray(x[j]) for x in g]) for j in (0, 1))
+        mpg, mbc = pg_.mean(0), bc_.mean(0)  # the gradients averaged over the batches
         row = {
             "run": r,
-            "grad_norm_pg": float(out[:, 0].mean()),
-            "grad_norm_bc": float(out[:, 1].mean()),
-            "ratio": float(np.mean(out[:, 0] / out[:, 1])),
+            # the norm of the batch-averaged gradient: single-batch norms of the objective's
+            # gradient (from actor.starts imagination starts) carry its sampling noise
+            "grad_norm_pg": float(np.linalg.norm(mpg)),
+            "grad_norm_bc": float(np.linalg.norm(mbc)),
+            "ratio": float(np.linalg.norm(mpg) / np.linalg.norm(mbc)),
+            "ratio_single_batch": float(
+                np.mean(np.linalg.norm(pg_, axis=1) / np.linalg.norm(bc_, axis=1))
+            ),
+            "cosine": float(mpg @ mbc / (np.linalg.norm(mpg) * np.linalg.norm(mbc))),
         }
         rows.append(row)
         print(
             f"{run.name} ({c.env.task}, {step} env steps) run {r}: |grad pg| "
             f"{row['grad_norm_pg']:.3g}, |grad bc| {row['grad_norm_bc']:.3g}, ratio "
-            f"{row['ratio']:.3g} (actor.pg={c.actor.pg:g}, actor.bc={c.actor.bc:g})"
+            f"{row['ratio']:.3g} (single batches {row['ratio_single_batch']:.3g}), cosine "
+            f"{row['cosine']:.2f} (actor.pg={c.actor.pg:g}, actor.bc={c.actor.bc:g})"
         )
     return {
         "run": str(run),

@@ -24,9 +24,10 @@ a quarter of its walking return. The probe separates "cannot walk" from "cannot 
    runner.start_evaluation and rollout.episodes draw them) and the logged mean return is split by
    least squares into a return per start that lands on its feet and per start that does not;
 5. model and value on the episodes that started on their feet (replay, newest checkpoint): from 5
-   filtered steps, the world model's open-loop prediction of the torso upright and the reward
-   under the actions the agent executed, against what happened (does the model know that these
-   actions flip the body?), and the value of the posterior when upright against on its back.
+   filtered steps, the world model's open-loop prediction over the planner's horizon of the torso
+   upright and the reward under the actions the agent executed, against what happened (does the
+   model know that these actions flip the body?), and the value of the posterior when upright and
+   on its back against the discounted return the agent got from there.
 
 Writes ``bench_results/quadruped_probe.json`` (one entry per run directory).
 """
@@ -183,25 +184,33 @@ def perfect_model_cem(hold: int, samples: int = 200, iters: int = 30, seed: int 
     return best
 
 
-def model_check(cfg, state, ui: int, filtered: int = 5, horizon: int = 60) -> list[dict]:
-    """Part 5, per run: for each replay episode that started on its feet (after the prefill's 5),
-    the model filters ``filtered`` steps, then predicts ``horizon`` agent steps open loop under the
-    executed actions; the episode "flipped" when its real upright averaged < 0 over the window's
-    last 10 steps. Also the value (target network) on the posterior features of agent steps 50-150
-    of episodes 50 on, by the real upright there (> 0.8 upright, < -0.8 on its back)."""
+def model_check(cfg, state, ui: int, filtered: int = 5) -> list[dict]:
+    """Part 5, per run. For each replay episode that started on its feet (after the prefill), the
+    model filters ``filtered`` steps, then predicts the planner's horizon open loop under the
+    executed actions, deterministically (latent means, as the planner rolls out); an episode
+    flipped (really / by the model) when its upright over the window's last 10 steps averages < 0.
+    And the value (target network) on the posteriors of agent steps 50-150 of the run's second
+    half of episodes, against the discounted return the agent really got from there (its own
+    behaviour, which is what a value learns), split by the real upright (> 0.8 / < -0.8)."""
     import jax
     import numpy as np
 
     from mjx_collo import value as value_lib
     from mjx_collo.world_model import heads, rssm
 
-    k, h, wm = filtered, horizon, cfg.wm
+    k, h, wm, gamma = filtered, cfg.planner.horizon, cfg.wm, cfg.value.gamma
+    prefill = cfg.run.prefill // cfg.env.episode_env_steps  # episodes of random actions
 
     @jax.jit
     def predict(params, obs, act, first, key):  # rows hold obs_t and action_{t-1}
         post, _ = rssm.observe(wm, params, obs[None, :k], act[None, :k], first[None, :k], key)
         start = jax.tree.map(lambda x: x[0, k - 1], post)
-        feat = rssm.get_feat(rssm.imagine(wm, params, start, act[k : k + h], key))
+
+        def step(z, a):
+            z = rssm.img_step_mean(wm, params, z, a)
+            return z, rssm.get_feat(z)
+
+        feat = jax.lax.scan(step, start, act[k : k + h])[1]
         return heads.predict_obs(wm, params, feat)[:, ui], heads.reward(wm, params, feat)
 
     @jax.jit
@@ -213,69 +222,73 @@ def model_check(cfg, state, ui: int, filtered: int = 5, horizon: int = 60) -> li
     data["is_first"] = np.asarray(state.replay.data["is_first"])[:, :, 0]
     count = np.broadcast_to(np.asarray(state.replay.count), (data["obs"].shape[0],))
     key = jax.random.PRNGKey(0)
-    at = [9, 19, 39, 59]  # agent steps after the filtered ones
+    at = [9, 19, h - 1]  # agent steps after the filtered ones, the last at the horizon
     out = []
     for s in range(data["obs"].shape[0]):
         params = jax.tree.map(lambda x, s=s: x[s], state.wm)
         vparams = jax.tree.map(lambda x, s=s: x[s], state.value.target)
         obs, act = data["obs"][s, : count[s]], data["action"][s, : count[s]]
         rew, first = data["reward"][s, : count[s]], data["is_first"][s, : count[s]]
-        rows = {"flipped": [], "stayed": []}
-        v_up, v_back = [], []
-        for i, a in enumerate(np.flatnonzero(first)):
-            seg = slice(a, a + k + h)
-            if a + 300 <= count[s] and i >= 50:
-                v = np.asarray(
-                    values(
-                        params, vparams, obs[a : a + 300], act[a : a + 300], first[a : a + 300], key
-                    )
-                )[50:150]
-                u = obs[a + 50 : a + 150, ui]
-                v_up += v[u > 0.8].tolist()
-                v_back += v[u < -0.8].tolist()
-            if a + k + h > count[s] or obs[a, ui] < UP or i < 5:
+        starts = np.flatnonzero(first)
+        ends = [*starts[1:], count[s]]
+        eps = []
+        value = {"upright": ([], []), "on_back": ([], [])}  # (value, discounted return got)
+        for i, (a, e) in enumerate(zip(starts, ends, strict=True)):
+            if i >= len(starts) // 2 and e - a >= 300:
+                v = np.asarray(values(params, vparams, obs[a:e], act[a:e], first[a:e], key))
+                r = rew[a + 1 : e]  # the reward of arriving at row t + 1 follows state t
+                ret = np.zeros(len(r) + 1)
+                for t in range(len(r) - 1, -1, -1):
+                    ret[t] = r[t] + gamma * ret[t + 1]
+                for t in range(50, 150):
+                    u = obs[a + t, ui]
+                    cls = "upright" if u > 0.8 else "on_back" if u < -0.8 else None
+                    if cls:
+                        value[cls][0].append(v[t])
+                        value[cls][1].append(ret[t])
+            if e - a < k + h or obs[a, ui] < UP or i < prefill:
                 continue
+            seg = slice(a, a + k + h)
             pu, pr = (np.asarray(x) for x in predict(params, obs[seg], act[seg], first[seg], key))
             real = obs[a + k : a + k + h, ui]
-            rows["flipped" if real[-10:].mean() < 0 else "stayed"].append(
-                (real[at], pu[at], rew[a + k : a + k + h].sum(), pr.sum())
+            rr = rew[a + k : a + k + h]  # rows k.. hold the rewards of arriving at obs_k..
+            eps.append(
+                (real[-10:].mean() < 0, pu[-10:].mean() < 0, real[at], pu[at], rr.sum(), pr.sum())
             )
-        entry = {
-            "run": s,
-            "value_upright": float(np.mean(v_up)) if v_up else None,
-            "value_on_back": float(np.mean(v_back)) if v_back else None,
-            "reward_per_step_upright": float(rew[obs[:, ui] > 0.8].mean()),
-        }
-        for tag, r in rows.items():
+        entry = {"run": s, "horizon": h}
+        for cls, (v, g) in value.items():
+            entry[f"value_{cls}"] = float(np.mean(v)) if v else None
+            entry[f"return_got_{cls}"] = float(np.mean(g)) if g else None
+            entry[f"states_{cls}"] = len(v)
+        for tag, real_flip in (("flipped", True), ("stayed", False)):
+            r = [x for x in eps if x[0] == real_flip]
             entry[tag] = {
                 "episodes": len(r),
-                "upright_at_10_20_40_60_real": np.mean([x[0] for x in r], 0)
-                .astype(float)
-                .round(2)
-                .tolist()
-                if r
-                else None,
-                "upright_at_10_20_40_60_predicted": np.mean([x[1] for x in r], 0)
-                .astype(float)
-                .round(2)
-                .tolist()
-                if r
-                else None,
-                f"reward_over_{h}_real": float(np.mean([x[2] for x in r])) if r else None,
-                f"reward_over_{h}_predicted": float(np.mean([x[3] for x in r])) if r else None,
+                "predicted_flipped": int(sum(x[1] for x in r)),
+                f"upright_at_{'_'.join(str(t + 1) for t in at)}_real": (
+                    np.mean([x[2] for x in r], 0).astype(float).round(2).tolist() if r else None
+                ),
+                f"upright_at_{'_'.join(str(t + 1) for t in at)}_predicted": (
+                    np.mean([x[3] for x in r], 0).astype(float).round(2).tolist() if r else None
+                ),
+                "reward_real": float(np.mean([x[4] for x in r])) if r else None,
+                "reward_predicted": float(np.mean([x[5] for x in r])) if r else None,
             }
             if r:
+                e = entry[tag]
                 print(
-                    f"  run {s}, {len(r)} on-feet episodes that {tag}: upright at +10/+20/+40/+60 "
-                    f"real {entry[tag]['upright_at_10_20_40_60_real']}, predicted open loop "
-                    f"{entry[tag]['upright_at_10_20_40_60_predicted']}; reward over {h} steps real "
-                    f"{entry[tag][f'reward_over_{h}_real']:.1f}, predicted "
-                    f"{entry[tag][f'reward_over_{h}_predicted']:.1f}"
+                    f"  run {s}, {len(r)} on-feet episodes that {tag} within {k + h} agent steps: "
+                    f"{e['predicted_flipped']} predicted to flip; upright at "
+                    f"+{'/+'.join(str(t + 1) for t in at)} real "
+                    f"{np.mean([x[2] for x in r], 0).astype(float).round(2).tolist()}, predicted "
+                    f"{np.mean([x[3] for x in r], 0).astype(float).round(2).tolist()}; reward over {h} steps "
+                    f"real {e['reward_real']:.1f}, predicted {e['reward_predicted']:.1f}"
                 )
         print(
-            f"  run {s}: value upright {entry['value_upright']:.1f}, on its back "
-            f"{entry['value_on_back']:.1f} (reward per agent step upright "
-            f"{entry['reward_per_step_upright']:.2f})"
+            f"  run {s}: value upright {entry['value_upright']:.1f} (return got "
+            f"{entry['return_got_upright']:.1f}, {entry['states_upright']} states), on its back "
+            f"{entry['value_on_back']:.1f} (got {entry['return_got_on_back']:.1f}, "
+            f"{entry['states_on_back']} states)"
         )
         out.append(entry)
     return out

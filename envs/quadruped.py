@@ -242,8 +242,9 @@ class QuadrupedMove(base.MjxTask):
         return {
             "starts_on_feet": on_feet.sum().astype(jnp.float32),
             "got_up": (down & ended_up).sum().astype(jnp.float32),
-            # on its feet at reset, not at the end: the agent toppled itself (a still body keeps
-            # its feet; the default's runs flipped onto their backs, docs/EXPERIMENTS.md)
+            # on its feet at reset, not at the end: mostly the agent toppled itself (the default's
+            # runs flipped onto their backs, docs/EXPERIMENTS.md), rarely a start counted on its
+            # feet that landed on its side
             "fell": (on_feet & ~ended_up).sum().astype(jnp.float32),
             "return_on_feet": mean_of(on_feet),
             "return_down": mean_of(down),

@@ -359,8 +359,9 @@ def _facts_block(
     cfg: StudyConfig, task: str, series: list[Series], budgets: list[int | str]
 ) -> list[str]:
     """Quadruped's evaluation facts beside its table: how many starts landed on their feet (the
-    walk pays ~0 on the back, so a figure is mostly this count until an agent gets up) and how
-    many down starts got up, over every seed's episodes at each budget."""
+    walk pays ~0 on the back, so a figure is mostly this count until an agent gets up), how many
+    of those fell (where logged), and how many down starts got up, over every seed's episodes at
+    each budget."""
     shown = [s for s in series if s.facts and not s.prior_alone]
     if not shown:
         return []
