@@ -160,6 +160,7 @@ class InitCEMConfig(Section):
     std: float
     color: Annotated[float, Field(ge=0.0)]
     color_frac: Annotated[float, Field(ge=0.0, le=1.0)]
+    prior_frac: Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class PlannerConfig(Section):
@@ -390,6 +391,7 @@ ADDED_KEYS: dict[str, Any] = {
     "explore.color": 0.0,
     "planner.init_cem.color_frac": 1.0,
     "planner.shooting.color_frac": 1.0,
+    "planner.init_cem.prior_frac": 1.0,
     "explore.disag": {"heads": 0, "layers": 2, "units": 128, "lr": 3.0e-4, "scale": 1.0},
     "wm.decode_every": 1,
 }
@@ -595,7 +597,12 @@ def uses_prior(cfg: Config) -> bool:
 # Float keys a one-compile sweep cannot vary: they decide the program's shapes or state.
 # explore.color > 0 keeps each env's noise sequence for the episode in the acting state; a
 # planner's color_frac splits its samples into a white and a colored block of fixed sizes.
-STATIC_FLOATS = {"explore.color", "planner.init_cem.color_frac", "planner.shooting.color_frac"}
+STATIC_FLOATS = {
+    "explore.color",
+    "planner.init_cem.color_frac",
+    "planner.init_cem.prior_frac",
+    "planner.shooting.color_frac",
+}
 
 
 def float_keys(cfg: Config) -> list[str]:

@@ -167,3 +167,36 @@ def test_a_mixed_population_draws_a_white_block_and_a_colored_block():
         np.asarray(_sample_noise(every, key, (16, 3))),
         np.asarray(colored_normal(key, (40, 16, 3), 2.0)),
     )
+
+
+def test_part_of_the_cem_start_centred_on_zero_leaves_a_poor_prior_proposal():
+    """The quadruped's failure in small (docs/EXPERIMENTS.md, "Planning from the policy prior
+    flips the quadruped"): staying at z = 0 (zero action) is best, the prior proposes a full push
+    away. A CEM start of 30 narrow samples x 3 centred on the prior's plan cannot leave it; with
+    half of the first population centred on zero (planner.init_cem.prior_frac 0.5) the elites
+    find the still plan. prior_frac 1 is the CEM centred on the prior alone, as before."""
+    model = LatentModel(
+        start=lambda p, c, a: c + a,
+        step=lambda p, z, a: z + a,
+        reward=lambda p, z: -jnp.sum(jnp.square(z)),
+        value=lambda p, z: -jnp.sum(jnp.square(z)),
+        policy=lambda p, z: jnp.ones(1),
+        ctx_policy=lambda p, c: jnp.ones(1),
+    )
+    first_action = {}
+    for frac in (1.0, 0.5):
+        over = ["init=policy_cem", "iters=0", "horizon=5", "init_cem.samples=30"]
+        over += ["init_cem.elites=3", "init_cem.iters=3", "init_cem.std=0.1"]
+        over += [f"init_cem.prior_frac={frac}"]
+        cfg = config.load(method="collodreamer", overrides=[f"planner.{o}" for o in over])
+        planner = make_planner(cfg, model, 1)
+
+        def run(key, planner=planner):
+            ctx = jnp.zeros(1)
+            return planner.optimize(None, ctx, planner.init(None, ctx, key), key)[0].a[0, 0]
+
+        first_action[frac] = np.asarray(
+            jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(0), 8))
+        )
+    assert np.all(first_action[1.0] > 0.6), first_action  # stuck near the prior's push of 1
+    assert np.all(np.abs(first_action[0.5]) < 0.3), first_action  # the still plan

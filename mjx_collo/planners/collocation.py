@@ -73,7 +73,10 @@ def cem_actions(
 ) -> jax.Array:
     """Mean [H, A] of ``init_cem.iters`` CEM iterations (``samples`` sequences from
     N(mean, std^2), ``mean`` zero unless given, refit to the top ``elites``) scored by the
-    collocation objective J of their model rollouts.
+    collocation objective J of their model rollouts. With a ``mean`` (the prior's plan) and
+    ``init_cem.prior_frac`` < 1, only that share of the first iteration's samples is centred on
+    it and the rest on zero, so the elites can leave a poor proposal (a quadruped's still pose is
+    zero action; docs/EXPERIMENTS.md, "Planning from the policy prior flips the quadruped").
 
     Gradient collocation from random actions finds poor local optima on a trained model; starting
     it from a cheap sampling solution gives the Lagrangian iterations a good basin to refine.
@@ -95,9 +98,18 @@ def cem_actions(
         update={"planner": cfg.planner.model_copy(update={"kind": "cem", "shooting": shoot})}
     )
     start = shooting.init_shoot(sub, action_dim)
+    first = None
     if mean is not None:
         start = start.replace(mean=jnp.clip(mean, -1.0, 1.0).astype(start.mean.dtype))
-    state, _ = shooting.optimize_shoot(sub, prob, start, key)
+        around_prior = int(round(ic.samples * ic.prior_frac))
+        if around_prior < ic.samples:  # the rest of the first population around zero
+            first = jnp.concatenate(
+                [
+                    jnp.broadcast_to(start.mean, (around_prior,) + start.mean.shape),
+                    jnp.zeros((ic.samples - around_prior,) + start.mean.shape, start.mean.dtype),
+                ]
+            )
+    state, _ = shooting.optimize_shoot(sub, prob, start, key, first_means=first)
     return jnp.clip(state.mean, -1.0, 1.0)
 
 

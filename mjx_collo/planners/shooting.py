@@ -90,18 +90,27 @@ def _sample_noise(sc, key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 def optimize_shoot(
-    cfg: Config, prob: Problem, state: ShootState, key: jax.Array, unroll: bool = False
+    cfg: Config,
+    prob: Problem,
+    state: ShootState,
+    key: jax.Array,
+    unroll: bool = False,
+    first_means: jax.Array | None = None,
 ) -> tuple[ShootState, dict[str, jax.Array]]:
     """``shooting.iters`` sampling iterations (one ``fori_loop``) from ``state``.
 
     ``unroll`` unrolls the loop (only for FLOP counting: XLA counts a loop body once).
+    ``first_means`` ``[samples, H, A]``: each sample's own centre in the first iteration (a mixed
+    population, e.g. some samples around a policy prior's plan and the rest around zero); the
+    elites then refit one distribution as usual.
     """
     sc = cfg.planner.shooting
     score_fn = jax.vmap(lambda acts: sequence_return(prob, acts))
 
     def body(k, st: ShootState) -> ShootState:
         eps = _sample_noise(sc, jax.random.fold_in(key, k), st.mean.shape)
-        samples = jnp.clip(st.mean + st.std * eps, -1.0, 1.0)
+        centre = st.mean if first_means is None else jnp.where(k == 0, first_means, st.mean)
+        samples = jnp.clip(centre + st.std * eps, -1.0, 1.0)
         score = score_fn(samples)
         score = jnp.where(jnp.isfinite(score), score, -jnp.inf)
         return _update(cfg, samples, score)
