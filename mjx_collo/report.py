@@ -205,14 +205,22 @@ def _score(s: Series, budget: int, target: int) -> str:
     budget it never evaluated at (the paper's 25k in a cell evaluated every 10k) shows its last
     evaluation before the budget, named by its step: a reading on no more data than the budget
     allows, never an interpolation."""
-    if (scores := s.at(budget)) is not None:
-        return _fmt(scores)
+    if (read := _reading(s, budget, target)) is None:
+        return "—"
+    step, note = read
+    return _fmt(s.evals[step]) + note
+
+
+def _reading(s: Series, budget: int, target: int) -> tuple[int, str] | None:
+    """The evaluation step a table reads for ``budget`` (see `_score`) and the note that names
+    it ("" at the budget itself, " at 80k (partial)" before it); None when there is none."""
+    if budget in s.evals:
+        return budget, ""
     before = [step for step in s.evals if step < budget]
     if target >= budget and before:
         last = max(before)
-        note = " (partial)" if s.env_steps < budget else ""
-        return f"{_fmt(s.evals[last])} at {_k(last)}{note}"
-    return "—"
+        return last, f" at {_k(last)}" + (" (partial)" if s.env_steps < budget else "")
+    return None
 
 
 def _budget_of(cfg: StudyConfig, task: str, budget: int | str) -> int | None:
@@ -345,7 +353,7 @@ def _task_block(
             cells_[0] = f"{score} (at {_k(at)})" if at else score
         lines.append(f"| *{a.name}* | " + " | ".join(cells_) + " |")
     lines.append("")
-    lines += _facts_block(cfg, task, series, budgets)
+    lines += _facts_block(cfg, task, series, budgets, targets)
     if "paper" in budgets:
         lines += [
             f"Paper budget for {task}: {cfg.paper_budgets.get(task, '—')} env steps; a cell "
@@ -356,12 +364,16 @@ def _task_block(
 
 
 def _facts_block(
-    cfg: StudyConfig, task: str, series: list[Series], budgets: list[int | str]
+    cfg: StudyConfig,
+    task: str,
+    series: list[Series],
+    budgets: list[int | str],
+    targets: dict[str, int],
 ) -> list[str]:
     """Quadruped's evaluation facts beside its table: how many starts landed on their feet (the
     walk pays ~0 on the back, so a figure is mostly this count until an agent gets up), how many
     of those fell (where logged), and how many down starts got up, over every seed's episodes at
-    each budget."""
+    each budget, read at the same evaluation as the return table (`_reading`)."""
     shown = [s for s in series if s.facts and not s.prior_alone]
     if not shown:
         return []
@@ -377,7 +389,9 @@ def _facts_block(
     for s in shown:
         row = []
         for x in budgets:
-            f = s.facts.get(b) if (b := _budget_of(cfg, task, x)) is not None else None
+            b = _budget_of(cfg, task, x)
+            read = _reading(s, b, targets.get(s.variant, 0)) if b is not None else None
+            f = s.facts.get(read[0]) if read else None
             if not f or "starts_on_feet" not in f:
                 row.append("—")
                 continue
@@ -386,9 +400,12 @@ def _facts_block(
             # evaluations logged since 2026-12-07 (late) also count the starts on feet that fell
             fell = f" ({int(f['fell'].sum())} fell)" if "fell" in f else ""
             row.append(
-                f"{feet} of {n} on feet{fell}, {up} of {n - feet} got up"
-                if n
-                else f"{feet}{fell}, {up}"
+                (
+                    f"{feet} of {n} on feet{fell}, {up} of {n - feet} got up"
+                    if n
+                    else f"{feet}{fell}, {up}"
+                )
+                + read[1]
             )
         lines.append(f"| {s.label} | " + " | ".join(row) + " |")
     return lines + [""]

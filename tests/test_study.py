@@ -419,6 +419,16 @@ def test_quadruped_reports_show_the_starts_on_their_feet_and_the_get_ups(tmp_pat
     md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
     line = next(x for x in md.splitlines() if x.startswith("| collodreamer | "))
     assert line == "| collodreamer | 3 of 10 on feet (1 fell), 1 of 7 got up |", line
+    # a cell still training towards the budget: its facts are read at the same last evaluation
+    # as its return (here 400 of 800), named so, rather than a dash beside a return
+    rows = [r for r in rows if r["step"] == 400]
+    (cell / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    md = report.write("smoke", cfg, tmp_path / "results", tmp_path / "smoke.md").read_text()
+    facts = md.split("Evaluation starts on their feet")[1].split("## Aggregate")[0]
+    line = next(x for x in facts.splitlines() if x.startswith("| collodreamer | "))
+    assert line == "| collodreamer | 3 of 10 on feet (1 fell), 0 of 7 got up at 400 (partial) |", (
+        line
+    )
 
 
 def test_ablation_study_is_the_issue_grid():
