@@ -284,12 +284,14 @@ def model_check(cfg, state, ui: int, filtered: int = 5) -> list[dict]:
                     f"{np.mean([x[3] for x in r], 0).astype(float).round(2).tolist()}; reward over {h} steps "
                     f"real {e['reward_real']:.1f}, predicted {e['reward_predicted']:.1f}"
                 )
-        print(
-            f"  run {s}: value upright {entry['value_upright']:.1f} (return got "
-            f"{entry['return_got_upright']:.1f}, {entry['states_upright']} states), on its back "
-            f"{entry['value_on_back']:.1f} (got {entry['return_got_on_back']:.1f}, "
-            f"{entry['states_on_back']} states)"
-        )
+        said = [
+            f"{name} {entry[f'value_{cls}']:.1f} (return got {entry[f'return_got_{cls}']:.1f}, "
+            f"{entry[f'states_{cls}']} states)"
+            if entry[f"states_{cls}"]
+            else f"{name}: no states"  # a run whose late episodes never stood (or lay) there
+            for cls, name in (("upright", "upright"), ("on_back", "on its back"))
+        ]
+        print(f"  run {s}: value " + ", ".join(said))
         out.append(entry)
     return out
 
